@@ -1,0 +1,191 @@
+"""Rigid transforms, quaternions, and least-squares plane and sphere fits.
+
+Conventions (``shared/DESIGN.md`` §1): lengths in mm, angles in radians, ``T_a_b`` maps
+coordinates in frame ``b`` to frame ``a`` (``p_a = T_a_b @ p_b``), quaternions are
+``(qw, qx, qy, qz)``, planes are ``n · p + d = 0`` with ``|n| = 1``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+__all__ = [
+    "angle_between",
+    "fit_plane",
+    "fit_sphere",
+    "invert_transform",
+    "make_transform",
+    "matrix_to_quat",
+    "matrix_to_rotvec",
+    "orthonormalize",
+    "plane_distance",
+    "plane_line_intersection",
+    "quat_to_matrix",
+    "rotation_angle",
+    "rotvec_to_matrix",
+    "transform_from_pose",
+    "transform_points",
+    "transform_to_pose",
+]
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) from quaternions (..., 4) ordered (qw, qx, qy, qz)."""
+    q = np.asarray(q, dtype=np.float64)
+    return Rotation.from_quat(q, scalar_first=True).as_matrix()
+
+
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """Unit quaternions (..., 4) ordered (qw, qx, qy, qz) with qw >= 0 from rotations."""
+    q = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat(scalar_first=True)
+    return np.where(q[..., :1] < 0, -q, q)
+
+
+def rotvec_to_matrix(rv: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) from rotation vectors (axis × angle, radians)."""
+    return Rotation.from_rotvec(np.asarray(rv, dtype=np.float64)).as_matrix()
+
+
+def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors (..., 3) (axis × angle, radians) from rotation matrices."""
+    return Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_rotvec()
+
+
+def rotation_angle(R: np.ndarray) -> np.ndarray:
+    """Rotation angle in radians of rotation matrices (..., 3, 3), in [0, pi]."""
+    R = np.asarray(R, dtype=np.float64)
+    c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
+    # arccos is ill-conditioned near 0; combine with the skew part for full precision.
+    s = 0.5 * np.linalg.norm(
+        np.stack(
+            [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]],
+            axis=-1,
+        ),
+        axis=-1,
+    )
+    return np.arctan2(s, c)
+
+
+def orthonormalize(R: np.ndarray) -> np.ndarray:
+    """Nearest proper rotation (Frobenius norm) to a 3×3 matrix, by SVD."""
+    U, _, Vt = np.linalg.svd(np.asarray(R, dtype=np.float64))
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
+    return U @ D @ Vt
+
+
+def make_transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """4×4 homogeneous transform (..., 4, 4) from rotations (..., 3, 3) and translations (..., 3)."""
+    R = np.asarray(R, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64)
+    T = np.zeros((*R.shape[:-2], 4, 4))
+    T[..., :3, :3] = R
+    T[..., :3, 3] = t
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def invert_transform(T: np.ndarray) -> np.ndarray:
+    """Inverse of rigid transforms (..., 4, 4), using the rotation's transpose."""
+    T = np.asarray(T, dtype=np.float64)
+    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    return make_transform(Rt, -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3]))
+
+
+def transform_points(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Apply a transform (4, 4) or per-point transforms (N, 4, 4) to points (N, 3)."""
+    T = np.asarray(T, dtype=np.float64)
+    p = np.asarray(p, dtype=np.float64)
+    if T.ndim == 2:
+        return p @ T[:3, :3].T + T[:3, 3]
+    return np.einsum("...ij,...j->...i", T[..., :3, :3], p) + T[..., :3, 3]
+
+
+def transform_from_pose(xyz: np.ndarray, quat: np.ndarray) -> np.ndarray:
+    """Transforms (..., 4, 4) from positions (..., 3) in mm and quaternions (..., 4) (qw, qx, qy, qz).
+
+    The quaternion is normalised first; callers validate that it was close to unit length.
+    """
+    quat = np.asarray(quat, dtype=np.float64)
+    quat = quat / np.linalg.norm(quat, axis=-1, keepdims=True)
+    return make_transform(quat_to_matrix(quat), xyz)
+
+
+def transform_to_pose(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (..., 3) and quaternions (..., 4) (qw, qx, qy, qz) of transforms (..., 4, 4)."""
+    T = np.asarray(T, dtype=np.float64)
+    return T[..., :3, 3].copy(), matrix_to_quat(T[..., :3, :3])
+
+
+def angle_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle in radians between vectors (..., 3), robust for nearly parallel vectors."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, axis=-1))
+
+
+def fit_plane(points: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """Total-least-squares plane ``n · p + d = 0`` through points (N, 3), N >= 3.
+
+    The normal is oriented so that ``d <= 0`` (the origin lies on the side the normal
+    points away from), which keeps planes comparable across fits.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) < 3:
+        raise ValueError(f"fit_plane needs an (N, 3) array with N >= 3, got shape {p.shape}")
+    w = np.ones(len(p)) if weights is None else np.asarray(weights, dtype=np.float64)
+    c = (w[:, None] * p).sum(0) / w.sum()
+    _, _, Vt = np.linalg.svd(np.sqrt(w)[:, None] * (p - c), full_matrices=False)
+    n = Vt[2]
+    d = -float(n @ c)
+    if d > 0:
+        n, d = -n, -d
+    return n, d
+
+
+def plane_distance(points: np.ndarray, normal: np.ndarray, d: float) -> np.ndarray:
+    """Signed distances (N,) of points (N, 3) to the plane ``n · p + d = 0``."""
+    n = np.asarray(normal, dtype=np.float64)
+    return np.asarray(points, dtype=np.float64) @ n / np.linalg.norm(n) + d / np.linalg.norm(n)
+
+
+def plane_line_intersection(
+    n1: np.ndarray, d1: float, n2: np.ndarray, d2: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Line where two planes meet: a point on it (closest to the origin) and a unit direction."""
+    n1 = np.asarray(n1, dtype=np.float64)
+    n2 = np.asarray(n2, dtype=np.float64)
+    u = np.cross(n1, n2)
+    norm = np.linalg.norm(u)
+    if norm < 1e-12:
+        raise ValueError("the planes are parallel: they have no line of intersection")
+    A = np.stack([n1, n2, u])
+    p = np.linalg.solve(A, np.array([-d1, -d2, 0.0]))
+    return p, u / norm
+
+
+def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """Geometric least-squares sphere through points (N, 3), N >= 4.
+
+    Returns the centre (3,), the radius and the radial residuals (N,) (distance to the
+    centre minus the radius). The algebraic fit seeds a Levenberg–Marquardt refinement of
+    the orthogonal distances, as ISO 10360 asks for.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) < 4:
+        raise ValueError(f"fit_sphere needs an (N, 3) array with N >= 4, got shape {p.shape}")
+    c0 = p.mean(0)
+    q = p - c0
+    A = np.column_stack([2 * q, np.ones(len(q))])
+    sol, *_ = np.linalg.lstsq(A, (q**2).sum(1), rcond=None)
+    centre = sol[:3]
+    r = np.sqrt(sol[3] + centre @ centre)
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(q - x[:3], axis=1) - x[3]
+
+    res = least_squares(residual, np.r_[centre, r], method="lm", xtol=1e-15, ftol=1e-15)
+    centre, r = res.x[:3], float(res.x[3])
+    return centre + c0, r, residual(res.x)

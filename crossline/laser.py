@@ -1,0 +1,110 @@
+"""Laser planes in the camera frame: ``n · p + d = 0`` with ``|n| = 1`` (the paper's [A B C D])."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from crossline.atomic import write_json
+from crossline.geometry import angle_between, plane_line_intersection
+
+__all__ = ["LASERS", "LaserPlane", "LaserPlanes"]
+
+LASERS = ("A", "B")
+
+
+@dataclass(frozen=True)
+class LaserPlane:
+    """One laser's light plane in the camera frame (mm)."""
+
+    normal: np.ndarray
+    d: float
+    extra: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        n = np.asarray(self.normal, dtype=np.float64).reshape(3)
+        norm = np.linalg.norm(n)
+        if not np.isfinite(norm) or norm < 1e-9:
+            raise ValueError(f"laser plane normal must be a finite non-zero vector, got {n}")
+        object.__setattr__(self, "normal", n / norm)
+        object.__setattr__(self, "d", float(self.d) / norm)
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """Signed distances (N,) of camera-frame points (N, 3) to the plane."""
+        return np.asarray(points, dtype=np.float64) @ self.normal + self.d
+
+    def intersect_rays(self, rays: np.ndarray) -> np.ndarray:
+        """Points (N, 3) where camera rays through the origin with directions (N, 3) meet the plane.
+
+        This is the paper's eq. 8 written for any ray direction: ``Z = -D / (n · r)``.
+        """
+        rays = np.asarray(rays, dtype=np.float64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = -self.d / (rays @ self.normal)
+        return rays * t[..., None]
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON mapping with ``normal`` and ``d`` plus any extras (residuals, counts, ...)."""
+        out = dict(self.extra)
+        out.update(normal=self.normal.tolist(), d=self.d)
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> LaserPlane:
+        """Plane from a mapping with keys ``normal`` and ``d``."""
+        extra = {k: v for k, v in data.items() if k not in ("normal", "d")}
+        return cls(np.array(data["normal"], dtype=np.float64), float(data["d"]), extra)
+
+
+@dataclass(frozen=True)
+class LaserPlanes:
+    """The planes of lasers A and B, as stored in ``lasers.json``."""
+
+    A: LaserPlane
+    B: LaserPlane
+    extra: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
+
+    def __getitem__(self, laser: str) -> LaserPlane:
+        if laser not in LASERS:
+            raise KeyError(f"unknown laser {laser!r}; expected one of {LASERS}")
+        return getattr(self, laser)
+
+    def angle_deg(self) -> float:
+        """Angle between the two planes in degrees (90 for a perfect cross)."""
+        return float(np.degrees(angle_between(self.A.normal, self.B.normal)))
+
+    def intersection_line(self) -> tuple[np.ndarray, np.ndarray]:
+        """The planes' line of intersection in the camera frame: a point and a unit direction."""
+        return plane_line_intersection(self.A.normal, self.A.d, self.B.normal, self.B.d)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``lasers.json`` mapping."""
+        out: dict[str, Any] = {"A": self.A.to_dict(), "B": self.B.to_dict()}
+        p, u = self.intersection_line()
+        out.update(self.extra)
+        out.setdefault("angle_AB_deg", self.angle_deg())
+        out.setdefault("intersection_line", {"point": p.tolist(), "direction": u.tolist()})
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> LaserPlanes:
+        """Planes from a ``lasers.json`` mapping."""
+        extra = {k: v for k, v in data.items() if k not in LASERS}
+        return cls(LaserPlane.from_dict(data["A"]), LaserPlane.from_dict(data["B"]), extra)
+
+    def save(self, path: str | Path) -> None:
+        """Write ``lasers.json`` atomically."""
+        write_json(path, self.to_dict())
+
+    @classmethod
+    def load(cls, path: str | Path) -> LaserPlanes:
+        """Read ``lasers.json``."""
+        path = Path(path)
+        try:
+            return cls.from_dict(json.loads(path.read_text()))
+        except (KeyError, ValueError, TypeError) as exc:
+            raise ValueError(f"{path}: not a laser-plane file: {exc}") from exc

@@ -1,0 +1,65 @@
+"""Shared fixtures: small rendered captures, rendered once and cached on disk.
+
+A capture is keyed by the simulator's source code and its arguments, so editing the
+renderer re-renders it and nothing stale is ever used. A file lock makes pytest-xdist
+workers wait for one render instead of each rendering their own.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import shutil
+from pathlib import Path
+
+import pytest
+
+from crossline.provenance import PACKAGE_ROOT, module_files
+
+REPO = PACKAGE_ROOT.parent
+CACHE = REPO / ".pytest_cache" / "crossline-captures"
+
+
+def render_cached(preset: str = "paper", seed: int = 0, **kwargs) -> Path:
+    """A quick capture of ``preset``, rendered once per simulator version and arguments."""
+    from crossline.sim import simulate
+
+    h = hashlib.sha256()
+    for f in module_files("crossline.sim"):
+        h.update(f.encode())
+        h.update((REPO / f).read_bytes())
+    h.update(repr((preset, seed, sorted(kwargs.items()))).encode())
+    out = CACHE / f"{preset}-{seed}-{h.hexdigest()[:16]}"
+    CACHE.mkdir(parents=True, exist_ok=True)
+    with open(CACHE / ".lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            if not (out / "rig.yaml").is_file():
+                shutil.rmtree(out, ignore_errors=True)
+                simulate(out, preset=preset, seed=seed, quick=True, progress=False, threads=2, **kwargs)
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+    return out
+
+
+@pytest.fixture(scope="session")
+def quick_capture() -> Path:
+    """A `--quick` capture of the paper's rig (read-only: copy it before changing anything)."""
+    return render_cached("paper", seed=0)
+
+
+@pytest.fixture(scope="session")
+def quick_capture_compact() -> Path:
+    """A `--quick` capture of the second rig preset (read-only)."""
+    from crossline.sim.presets import PRESETS
+
+    other = sorted(p for p in PRESETS if p != "paper")[0]
+    return render_cached(other, seed=0)
+
+
+@pytest.fixture
+def capture_copy(quick_capture: Path, tmp_path: Path) -> Path:
+    """A private copy of the quick capture that a test may break."""
+    dst = tmp_path / "capture"
+    shutil.copytree(quick_capture, dst)
+    return dst
