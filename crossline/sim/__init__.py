@@ -1,0 +1,19 @@
+"""The virtual rig: ``simulate(out, preset, ...)`` writes a complete capture folder with truth.
+
+The folder follows ``shared/DESIGN.md`` §2 exactly (rig.yaml, calibration/, scans/) and adds
+``truth.json`` and ``truth/`` (true centrelines, true poses, the freeform's mesh). Everything is
+rendered into ``<out>.partial-<pid>`` and renamed to ``<out>`` at the end (rig.yaml written
+last), so an interrupted run never leaves a folder that looks complete.
+
+Module map: ``presets`` (the rigs and every number), ``optics`` (rays through the distortion,
+sensor chain, speckle), ``scene`` (analytic primitives), ``scenes`` (artefacts and board),
+``texture`` (board patterns), ``sheet`` (laser irradiance), ``render`` (images and the true
+stripe), ``arm`` (trajectories and pose noise), ``views`` (calibration poses), ``part`` (the
+freeform's truth mesh), ``capture`` (this package's writer, in ``simulate``).
+"""
+
+from __future__ import annotations
+
+from crossline.sim.capture import simulate
+
+__all__ = ["simulate"]

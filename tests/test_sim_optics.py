@@ -1,0 +1,161 @@
+"""Render honesty, small and fast: rays through the distortion, the stripe's centre, speckle, noise."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from crossline.geometry import invert_transform
+from crossline.sim import arm
+from crossline.sim.optics import RayTable, pixel_offsets, speckle_field
+from crossline.sim.presets import PRESETS
+from crossline.sim.render import Light, RigModel, render_image
+from crossline.sim.scenes import scan_scene
+
+
+@pytest.fixture(scope="module")
+def paper_model() -> RigModel:
+    return RigModel(PRESETS["paper"], bit_depth=16)
+
+
+@pytest.mark.parametrize("preset", sorted(PRESETS))
+def test_sample_rays_reproject_to_their_sample_positions(preset):
+    """Every supersample ray, wherever on the sensor, reprojects to its position (< 1e-4 px)."""
+    model = RigModel(PRESETS[preset])
+    cam = model.camera
+    w, h = cam.image_size
+    rng = np.random.default_rng(3)
+    # a strip along the top edge and one in the corner: the strongest distortion
+    for window in ((0, 0, w, 40), (w - 300, h - 200, 300, 200), model.scan_window):
+        table = RayTable(cam, window)
+        x0, y0, ww, hh = window
+        rows = rng.integers(0, hh, 3000)
+        cols = rng.integers(0, ww, 3000)
+        # pixel centres
+        xy = table.pixel_xy(rows, cols)
+        P = np.column_stack([xy, np.ones(len(xy))])
+        err = cam.project(P) - np.column_stack([cols + x0, rows + y0])
+        assert np.abs(err).max() < 1e-4
+        for n in (2, 4):
+            offs = pixel_offsets(n)
+            sxy = table.sample_xy(rows, cols, offs)
+            P = np.concatenate([sxy, np.ones((*sxy.shape[:2], 1))], -1).reshape(-1, 3)
+            want = np.stack([cols[:, None] + x0 + offs[None, :, 0],
+                             rows[:, None] + y0 + offs[None, :, 1]], -1).reshape(-1, 2)
+            assert np.abs(cam.project(P) - want).max() < 1e-4
+        if window == model.scan_window:
+            sxy = table.sample_xy_2x2(rows, cols)
+            P = np.concatenate([sxy, np.ones((*sxy.shape[:2], 1))], -1).reshape(-1, 3)
+            offs = pixel_offsets(2)
+            want = np.stack([cols[:, None] + x0 + offs[None, :, 0],
+                             rows[:, None] + y0 + offs[None, :, 1]], -1).reshape(-1, 2)
+            assert np.abs(cam.project(P) - want).max() < 1e-4
+
+
+def _frame(model, scan, laser, frame=None):
+    rig = model.preset
+    spec = next(s for s in rig.scans if s.name == scan)
+    scene_b, _, aim = scan_scene(rig, spec)
+    _, Tbc = arm.scan_trajectory(rig, spec, aim, spec.frames)
+    k = spec.frames // 2 if frame is None else frame
+    scene = scene_b.transformed(invert_transform(Tbc[k]))
+    dark = Light(0.0, np.array([0.0, 0.0, 1.0]), np.zeros(3), np.zeros(3))
+    dn, rows, stats = render_image(model, scene, dark, model.scan_window, (laser,),
+                                   np.random.default_rng(0), noise=False, speckle=False)
+    return dn, rows[laser], stats
+
+
+@pytest.mark.parametrize("laser", ["A", "B"])
+def test_clean_stripe_centroid_on_a_plane_is_the_true_centreline(paper_model, laser):
+    """Noise and speckle off, unsaturated (16 bit): the grey centre per column lies within 0.05 px."""
+    dn, rows, _ = _frame(paper_model, "plate", laser)
+    img = dn.astype(np.float64) - paper_model.sensor.black
+    assert img.max() < 65535 - paper_model.sensor.black  # not saturated
+    x0, y0 = paper_model.scan_window[:2]
+    vis = rows["visible"]
+    assert vis.sum() > 300
+    errs = []
+    for u, v in zip(rows["u"][vis], rows["v"][vis], strict=True):
+        col = img[:, u - x0]
+        vv = np.arange(len(col)) + y0
+        m = np.abs(vv - v) < 20
+        if m.sum() < 40:  # too close to the window's edge
+            continue
+        errs.append((col[m] * vv[m]).sum() / col[m].sum() - v)
+    errs = np.array(errs)
+    assert len(errs) > 300
+    assert np.abs(errs).max() < 0.05, np.abs(errs).max()
+
+
+def test_stripe_width_and_level_are_plausible(paper_model):
+    """The stripe is a few px wide (1/e^2) and its light lies where the truth says."""
+    dn, rows, stats = _frame(paper_model, "plate", "A")
+    img = dn.astype(np.float64) - paper_model.sensor.black
+    x0 = paper_model.scan_window[0]
+    u = rows["u"][rows["visible"]][len(rows["u"]) // 4]
+    col = img[:, u - x0]
+    above = np.nonzero(col > col.max() * np.exp(-2))[0]
+    width = above.max() - above.min() + 1
+    assert 4 <= width <= 16  # along the column; the stripe is oblique
+    assert stats["band_px"] > 0
+
+
+def test_speckle_field_has_the_stated_contrast_and_grain():
+    rng = np.random.default_rng(5)
+    mask = np.ones((400, 400), np.uint8)
+    f = speckle_field(rng, mask, 0.15, 0.55)
+    inner = f[20:-20, 20:-20]
+    assert abs(inner.mean() - 1.0) < 0.01
+    assert abs(inner.std() / inner.mean() - 0.15) < 0.015
+    # correlated over about one pixel: neighbours correlate, pixels 3 apart hardly
+    g = np.log(inner)
+    g = (g - g.mean()) / g.std()
+    c1 = np.mean(g[:, 1:] * g[:, :-1])
+    c3 = np.mean(g[:, 3:] * g[:, :-3])
+    assert 0.3 < c1 < 0.9
+    assert abs(c3) < 0.1
+    # outside the band the field is exactly 1
+    mask[:, :200] = 0
+    f = speckle_field(rng, mask, 0.15, 0.55)
+    assert np.all(f[:, :200] == 1.0)
+
+
+def test_sensor_noise_matches_the_model(paper_model):
+    """Flat field: the DN standard deviation is sqrt(shot + read) / gain (8 bit)."""
+    model = RigModel(PRESETS["paper"], bit_depth=8)
+    s = model.sensor
+    e = np.full((300, 300), 4000.0, np.float32)
+    dn = s.digitise(e, np.random.default_rng(1), (0, 0, 300, 300)).astype(np.float64)
+    want_mean = 4000.0 / s.gain + s.black
+    prnu = s.spec.prnu * 4000.0 / s.gain
+    want_std = np.sqrt((4000.0 + s.spec.read_noise_e**2) / s.gain**2 + prnu**2 + 1 / 12)
+    assert abs(dn.mean() - want_mean) < 0.1
+    assert abs(dn.std() - want_std) / want_std < 0.05
+    # saturation: far above the full well everything clips to the top code
+    dn = s.digitise(np.full((50, 50), 3e4, np.float32), np.random.default_rng(1), (0, 0, 50, 50))
+    assert dn.min() >= 254 and np.mean(dn == 255) > 0.99
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scan", ["gauge", "ball"])
+def test_the_band_holds_all_the_laser_light(paper_model, scan):
+    """Tracing every pixel of the frame finds no laser light outside the band (steps, limbs)."""
+    from crossline.sim.render import render_band, stripe_truth
+
+    rig = paper_model.preset
+    spec = next(s for s in rig.scans if s.name == scan)
+    scene_b, _, aim = scan_scene(rig, spec)
+    _, Tbc = arm.scan_trajectory(rig, spec, aim, spec.frames)
+    scene = scene_b.transformed(invert_transform(Tbc[spec.frames // 2 + 1]))
+    sheets = [paper_model.lasers["A"], paper_model.lasers["B"]]
+    window = paper_model.scan_window
+    mask = np.zeros((window[3], window[2]), np.uint8)
+    for sh in sheets:
+        mask |= stripe_truth(paper_model, scene, sh, window, truth=False)[0]
+    rows, cols = np.nonzero(np.ones_like(mask))
+    vals, _ = render_band(paper_model, scene, sheets, window, rows, cols)
+    light = vals.sum(0).reshape(mask.shape)
+    assert light.max() > 3000  # electrons: there is a stripe
+    outside = light[mask == 0]
+    assert outside.max() < 1.0  # less than one electron anywhere outside the band
+    assert mask.mean() < 0.1  # and the band is a small part of the frame

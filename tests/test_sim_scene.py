@@ -1,0 +1,178 @@
+"""The analytic scenes: exact hits, shadows, plane sections, and the freeform's truth mesh."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from crossline.geometry import invert_transform
+from crossline.sim import arm
+from crossline.sim.part import part_mesh, write_ply
+from crossline.sim.presets import PRESETS
+from crossline.sim.render import RigModel, stripe_truth
+from crossline.sim.scene import Box, Cylinder, FreeformPart, HalfSpace, Scene, Sphere
+from crossline.sim.scenes import freeform_part, scan_scene
+
+
+def _rays(n, seed=0, spread=0.25):
+    rng = np.random.default_rng(seed)
+    return np.column_stack([rng.uniform(-spread, spread, n), rng.uniform(-spread, spread, n),
+                            np.ones(n)])
+
+
+def _brute_first_hit(prim, d, t_max=400.0, steps=40001):
+    """First t along each ray where the point enters the solid (dense march, for comparison)."""
+    ts = np.linspace(1.0, t_max, steps)
+    first = np.full(len(d), np.inf)
+    for k in range(0, steps, 2000):
+        T = ts[k : k + 2000]
+        P = (d[:, None, :] * T[None, :, None]).reshape(-1, 3)
+        ins = prim.inside(P, tol=0.0).reshape(len(d), -1)
+        hit = ins.any(1) & ~np.isfinite(first)
+        first[hit] = T[np.argmax(ins[hit], axis=1)]
+    return first
+
+
+@pytest.mark.parametrize(
+    "prim",
+    [
+        Box(np.array([3.0, -2.0, 150.0]), np.linalg.qr(np.random.default_rng(1).normal(size=(3, 3)))[0]
+            * np.array([1, 1, 1]), np.array([20.0, 9.0, 10.0])),
+        Sphere(np.array([5.0, 4.0, 140.0]), 12.5),
+        # long and across the view: its caps (always buried in a scene) stay out of sight
+        Cylinder(np.array([-120.0, 10.0, 170.0]), np.array([0.98, 0.0, 0.2]) / np.hypot(0.98, 0.2),
+                 5.0, 240.0),
+        FreeformPart(np.array([0.0, 0.0, 160.0]), np.diag([1 / 25, -1 / 20, -1 / 25])),
+        HalfSpace(np.array([0.0, 0.0, 180.0]), np.array([0.1, 0.0, -1.0]) / np.hypot(0.1, 1.0)),
+    ],
+    ids=["box", "sphere", "cylinder", "freeform", "plane"],
+)
+def test_first_hit_is_exact_and_first(prim):
+    d = _rays(3000)
+    t, _ = prim.intersect(np.zeros(3), d, 1e-9)
+    hit = np.isfinite(t)
+    assert 0.05 < hit.mean() <= 1.0
+    # the hit lies on the surface: just before it outside, just after it inside
+    P = t[hit, None] * d[hit]
+    step = 1e-7 * d[hit] / np.linalg.norm(d[hit], axis=1, keepdims=True)
+    assert not prim.inside(P - step, tol=0.0).any()
+    assert prim.inside(P + step, tol=0.0).all()
+    # and no earlier entry exists (dense march, 0.01 mm steps)
+    brute = _brute_first_hit(prim, d[:600])
+    both = np.isfinite(brute) & np.isfinite(t[:600])
+    assert np.all(np.abs(brute[both] - t[:600][both]) < 0.02)
+    # a march of 0.01 mm steps can only miss grazing hits
+    assert np.isfinite(t[:600])[np.isfinite(brute)].all()
+    assert (np.isfinite(t[:600]) & ~np.isfinite(brute)).sum() <= 3
+
+
+def test_freeform_hits_lie_on_the_design_surface_to_a_nanometre():
+    part = FreeformPart(np.array([0.0, 0.0, 160.0]), np.diag([1 / 25, -1 / 20, -1 / 25]))
+    d = _rays(20000, seed=2)
+    t, face = part.intersect(np.zeros(3), d, 1e-9)
+    ok = np.isfinite(t) & (face == 0)
+    X = part.to_unit(t[ok, None] * d[ok])
+    N = part.gauge(X)
+    grad = np.linalg.norm((X**3 / (N**3)[:, None]) @ part.M, axis=1)
+    assert np.abs(N - 1.0).max() / grad.min() < 1e-9  # mm
+
+
+def test_truth_mesh_is_within_half_a_micrometre_of_the_design_surface(tmp_path):
+    """Random points of every kind of triangle, and Open3D's distance from design points to the mesh."""
+    import open3d as o3d
+
+    rig = PRESETS["paper"]
+    spec = next(s for s in rig.scans if s.artefact == "freeform")
+    part = freeform_part(rig, spec)
+    V, F = part_mesh(part)
+    A, B, C = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+    # outward orientation
+    normal = np.cross(B - A, C - A)
+    X = part.to_unit((A + B + C) / 3)
+    assert np.all(np.einsum("ij,ij->i", normal, (X**3) @ part.M) > 0)
+    rng = np.random.default_rng(0)
+    idx = rng.integers(0, len(F), 300000)
+    w = rng.dirichlet([1, 1, 1], len(idx))
+    Q = w[:, :1] * A[idx] + w[:, 1:2] * B[idx] + w[:, 2:] * C[idx]
+    Q = np.vstack([Q, (A + B) / 2, (B + C) / 2, (A + C) / 2])
+    X = part.to_unit(Q)
+    N = part.gauge(X)
+    dist = (1.0 - N) / np.linalg.norm((X**3 / (N**3)[:, None]) @ part.M, axis=1)
+    assert np.abs(dist[X[:, 2] >= 0]).max() < 0.5e-3
+    # the file Open3D reads is that mesh; design points (rendered hits) are within 0.5 um of it
+    write_ply(tmp_path / "part.ply", V, F)
+    mesh = o3d.io.read_triangle_mesh(str(tmp_path / "part.ply"))
+    Vr = np.asarray(mesh.vertices)
+    assert np.array_equal(Vr, V) and np.array_equal(np.asarray(mesh.triangles), F)
+    # design points (rendered hits) lie within 0.5 um of the mesh: Open3D (float32) finds the
+    # triangle a ray from inside the part towards each point meets; the distance along that
+    # ray to the triangle's plane, in float64, bounds the distance to the mesh from above
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor((Vr - part.c).astype(np.float32)),
+                        o3d.core.Tensor(F.astype(np.uint32)))
+    T_cam_base = np.linalg.inv(arm.scan_trajectory(rig, spec, part.c + np.array([0, 0, 20.0]), 3)[1][1])
+    part_cam = part.transformed(T_cam_base)
+    d = _rays(20000, seed=4, spread=0.2)
+    t, face = part_cam.intersect(np.zeros(3), d, 1e-9)
+    ok = np.isfinite(t) & (face == 0)
+    assert ok.sum() > 1000
+    P_cam = t[ok, None] * d[ok]
+    Q = (P_cam - T_cam_base[:3, 3]) @ T_cam_base[:3, :3] - part.c
+    inner = part.Minv @ np.array([0.0, 0.0, 0.3])
+    D = Q - inner
+    D /= np.linalg.norm(D, axis=1, keepdims=True)
+    rays = np.hstack([np.broadcast_to(inner, Q.shape), D]).astype(np.float32)
+    tri = scene.cast_rays(o3d.core.Tensor(rays))["primitive_ids"].numpy().astype(np.int64)
+    assert np.all(tri < len(F))
+    a, b, c = (Vr[F[tri, k]] - part.c for k in range(3))
+    n = np.cross(b - a, c - a)
+    s = np.einsum("ij,ij->i", n, a - inner) / np.einsum("ij,ij->i", n, D)
+    H = inner + s[:, None] * D  # on the triangle's plane, float64
+    # barycentric coordinates of H: it must lie in the triangle (float32 may pick a neighbour)
+    v0, v1, v2 = b - a, c - a, H - a
+    d00, d01, d11 = (np.einsum("ij,ij->i", x, y) for x, y in ((v0, v0), (v0, v1), (v1, v1)))
+    d20, d21 = np.einsum("ij,ij->i", v2, v0), np.einsum("ij,ij->i", v2, v1)
+    den = d00 * d11 - d01 * d01
+    bv = (d11 * d20 - d01 * d21) / den
+    bw = (d00 * d21 - d01 * d20) / den
+    inside = (bv >= -1e-6) & (bw >= -1e-6) & (bv + bw <= 1 + 1e-6)
+    assert inside.mean() > 0.98
+    assert np.linalg.norm(H - Q, axis=1)[inside].max() < 0.5e-3
+
+
+def test_shadow_rays_see_the_gauge_block():
+    """A point on the plate behind the block (seen from the emitter) is shadowed, one in front is not."""
+    plate = HalfSpace(np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    block = Box(np.array([0.0, 0.0, 10.0]), np.eye(3), np.array([5.0, 5.0, 10.0]))
+    scene = Scene([plate, block])
+    emitter = np.array([-100.0, 0.0, 100.0])
+    P = np.array([[8.0, 0.0, 0.0], [-8.0, 0.0, 0.0], [8.0, 30.0, 0.0]])
+    assert scene.blocked(P, emitter).tolist() == [True, False, False]
+
+
+@pytest.mark.parametrize("scan", ["gauge", "ball", "part"])
+def test_centreline_truth_lies_on_plane_and_surface_and_flags_agree(scan):
+    rig = PRESETS["paper"]
+    model = RigModel(rig)
+    spec = next(s for s in rig.scans if s.name == scan)
+    scene_b, _, aim = scan_scene(rig, spec)
+    _, Tbc = arm.scan_trajectory(rig, spec, aim, spec.frames)
+    scene = scene_b.transformed(invert_transform(Tbc[spec.frames // 2]))
+    sheet = model.lasers["A"]
+    mask, rows, _ = stripe_truth(model, scene, sheet, model.scan_window)
+    P = np.column_stack([rows["x_cam"], rows["y_cam"], rows["z_cam"]])
+    assert np.abs(sheet.distance(P)).max() < 1e-9
+    uv = model.camera.project(P)
+    assert np.abs(uv[:, 0] - rows["u"]).max() < 1e-6
+    assert np.abs(uv[:, 1] - rows["v"]).max() < 1e-6
+    # unoccluded points are the camera's first hit; occluded ones are not
+    t, _, _ = scene.trace(np.zeros(3), P)
+    assert np.all(np.abs(t[rows["unoccluded"]] - 1.0) < 1e-9)
+    assert np.all(t[~rows["unoccluded"]] < 1.0 - 1e-9)
+    assert rows["visible"].sum() > 200
+    # every visible centreline pixel is inside the band that was rendered
+    x0, y0 = model.scan_window[:2]
+    vis = rows["visible"]
+    vi = np.rint(rows["v"][vis]).astype(int) - y0
+    inside = (vi >= 0) & (vi < mask.shape[0])
+    assert mask[vi[inside], rows["u"][vis][inside] - x0].all()
