@@ -1,0 +1,301 @@
+"""Calibration accuracy against the virtual rig's truth: camera, laser planes, hand-eye.
+
+For each capture (by default a `--quick` capture of the `paper` preset, or `data/raw/demo` if
+it exists, and a `--quick` capture of the second preset), runs the three calibration stages
+exactly as the workflow does and prints, against ``truth.json``:
+
+* camera, WITH and WITHOUT the perspective-bias correction: RMS difference (px) between
+  projecting points of the working volume with the estimated and with the true model
+  (target <= 0.05 px), reprojection RMS, fx fy cx cy errors, and the detected circle centres
+  against the true imaged centroids (true camera, true board pose);
+* laser planes (with the estimated camera, and with the true camera to isolate the stage):
+  angle between estimated and true normal (target <= 0.005 deg) and the largest distance
+  between estimated and true plane over the working volume (target <= 0.005 mm);
+* hand-eye (estimated camera; and true camera): RMS distance between points of the working
+  volume carried by the estimated and by the true X (target <= 0.01 mm for the refined X),
+  rotation and translation errors, for Chou-Kamel, OpenCV's five methods, the plain
+  reprojection refinement and the refined X, side by side.
+
+The working volume is a grid over the whole field of view at depths across the rig's working
+range (paper: 115-185 mm as the issue states; compact: 80-125 mm around its 100 mm working
+distance). Results go to benchmarks/results/calibration.json and .txt.
+
+    python benchmarks/bench_calibration.py                       # paper + compact, quick
+    python benchmarks/bench_calibration.py --capture data/raw/demo --capture /tmp/compact
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from crossline.atomic import write_json  # noqa: E402
+from crossline.board import Board  # noqa: E402
+from crossline.calibrate.bias import centroid_offsets  # noqa: E402
+from crossline.calibrate.camera import run_calibrate_camera  # noqa: E402
+from crossline.calibrate.detect import detect_board  # noqa: E402
+from crossline.calibrate.handeye import HandEye, point_uncertainty, run_calibrate_handeye  # noqa: E402
+from crossline.calibrate.lasers import run_calibrate_lasers  # noqa: E402
+from crossline.camera import Camera  # noqa: E402
+from crossline.geometry import (  # noqa: E402
+    angle_between,
+    matrix_to_rotvec,
+    rotation_angle,
+    transform_points,
+)
+from crossline.imageio import read_image  # noqa: E402
+from crossline.laser import LaserPlanes  # noqa: E402
+
+RESULTS = ROOT / "benchmarks" / "results"
+DEPTHS = {"paper": (115.0, 185.0), "compact": (80.0, 125.0)}
+TARGETS = {"camera_px": 0.05, "laser_angle_deg": 0.005, "laser_dist_mm": 0.005, "handeye_mm": 0.01}
+
+
+# ----------------------------------------------------------------------------- metrics
+
+
+def volume_points(cam: Camera, depths: tuple[float, float], n: int = 21, nz: int = 8) -> np.ndarray:
+    """Camera-frame points (M, 3) over the true camera's whole field of view at ``nz`` depths."""
+    w, h = cam.image_size
+    u, v = np.meshgrid(np.linspace(0, w - 1, n), np.linspace(0, h - 1, n))
+    xy = cam.undistort(np.column_stack([u.ravel(), v.ravel()]))
+    z = np.linspace(depths[0], depths[1], nz)
+    return np.concatenate([np.column_stack([xy * zz, np.full(len(xy), zz)]) for zz in z])
+
+
+def camera_metrics(est: Camera, true: Camera, depths) -> dict:
+    """Projection difference over the working volume and intrinsic errors."""
+    P = volume_points(true, depths)
+    d = est.project(P) - true.project(P)
+    return {
+        "projection_rms_px": float(np.sqrt(np.mean(np.sum(d**2, 1)))),
+        "projection_max_px": float(np.max(np.linalg.norm(d, axis=1))),
+        "reprojection_rms_px": float(est.extra.get("rms_px", np.nan)),
+        "fx_err_px": est.fx - true.fx, "fy_err_px": est.fy - true.fy,
+        "cx_err_px": est.cx - true.cx, "cy_err_px": est.cy - true.cy,
+        "dist_err": (est.dist - true.dist).tolist(),
+        "bias_mean_shift_px": est.extra.get("bias_correction", {}).get("mean_shift_px"),
+        "bias_iterations": est.extra.get("bias_correction", {}).get("iterations"),
+        "views_used": est.extra.get("n_views_used"),
+    }
+
+
+def centre_metrics(capture: Path, truth: dict, true_cam: Camera, board: Board) -> dict:
+    """Detected circle centres against the true imaged centroids (true camera, true pose)."""
+    errs = []
+    for name, v in sorted(truth["calibration"]["camera"].items()):
+        img = read_image(capture / "calibration" / "camera" / name)
+        det = detect_board(img, board)
+        if not det.found:
+            continue
+        T = np.array(v["T_cam_board"])
+        P = board.object_points()
+        proj = true_cam.project(P @ T[:3, :3].T + T[:3, 3])
+        proj = proj + centroid_offsets(true_cam, board, matrix_to_rotvec(T[:3, :3]), T[:3, 3])
+        from crossline.calibrate.detect import board_symmetries
+
+        # the true board frame may differ from the detection's labelling by a symmetry
+        best = min(board_symmetries(board), key=lambda p: float(np.abs(det.points[p] - proj).mean()))
+        errs.append(det.points[best] - proj)
+    e = np.concatenate(errs)
+    return {
+        "views": len(errs),
+        "rms_px": float(np.sqrt(np.mean(np.sum(e**2, 1)))),
+        "mean_px": e.mean(0).tolist(),
+        "max_px": float(np.max(np.linalg.norm(e, axis=1))),
+    }
+
+
+def laser_metrics(est: LaserPlanes, truth: dict, true_cam: Camera, depths) -> dict:
+    """Normal angle and largest plane distance over the working volume, per laser."""
+    out = {}
+    w, h = true_cam.image_size
+    u, v = np.meshgrid(np.linspace(0, w - 1, 61), np.linspace(0, h - 1, 41))
+    rays = true_cam.rays(np.column_stack([u.ravel(), v.ravel()]))
+    for laser in ("A", "B"):
+        n_t = np.array(truth["lasers"][laser]["normal"])
+        d_t = float(truth["lasers"][laser]["d"])
+        p = est[laser]
+        n_e, d_e = p.normal, p.d
+        if n_e @ n_t < 0:
+            n_e, d_e = -n_e, -d_e
+        # points of the true plane seen by the camera inside the working depths
+        lam = -d_t / (rays @ n_t)
+        pts = rays * lam[:, None]
+        ok = (lam > 0) & (pts[:, 2] >= depths[0]) & (pts[:, 2] <= depths[1])
+        dist = pts[ok] @ n_e + d_e
+        out[laser] = {
+            "angle_deg": float(np.degrees(angle_between(n_e, n_t))),
+            "max_distance_mm": float(np.max(np.abs(dist))),
+            "d_err_mm": d_e - d_t,
+            "rms_mm": p.extra.get("rms_mm"),
+            "points": p.extra.get("n_used"),
+        }
+    return out
+
+
+def handeye_metrics(he: HandEye, truth: dict, true_cam: Camera, depths) -> dict:
+    """Per method: volume RMS distance, rotation and translation error of X."""
+    X_t = np.array(truth["T_tool_cam"])
+    P = volume_points(true_cam, depths, n=11, nz=8)
+    out = {}
+    for name, m in he.extra["methods"].items():
+        if "T_tool_cam" not in m:
+            out[name] = {"error": m.get("error")}
+            continue
+        X = np.array(m["T_tool_cam"])
+        d = transform_points(X, P) - transform_points(X_t, P)
+        out[name] = {
+            "volume_rms_mm": float(np.sqrt(np.mean(np.sum(d**2, 1)))),
+            "volume_max_mm": float(np.max(np.linalg.norm(d, axis=1))),
+            "rotation_err_deg": float(np.degrees(rotation_angle(X[:3, :3].T @ X_t[:3, :3]))),
+            "translation_err_mm": float(np.linalg.norm(X[:3, 3] - X_t[:3, 3])),
+            "board_consistency_mm": m.get("board_consistency_mm"),
+        }
+    unc = he.extra["methods"].get("refined", {}).get("uncertainty")
+    if unc is not None:
+        # what the stage's own covariance predicts for the same volume (1 sigma, RMS)
+        sig = point_uncertainty(np.array(he.T_tool_cam), np.array(unc["covariance_X"]), P)
+        out["refined"]["predicted_volume_rms_mm"] = float(np.sqrt(np.mean(sig**2)))
+    out["pairs"] = {k: he.extra["pairs"][k] for k in ("total", "used", "rejected")}
+    return out
+
+
+# ----------------------------------------------------------------------------- runs
+
+
+def evaluate(capture: Path, work: Path, threads: int) -> dict:
+    """Run the stages on one capture and score them against its truth."""
+    truth = json.loads((capture / "truth.json").read_text())
+    preset = truth.get("preset", capture.name)
+    depths = DEPTHS.get(preset, DEPTHS["paper"])
+    true_cam = Camera(np.array(truth["camera"]["K"]), np.array(truth["camera"]["dist"]),
+                      tuple(truth["camera"]["image_size"]))
+    tb = truth["board"]
+    board = Board(tb["pattern"], tb["cols"], tb["rows"], tb["spacing"], tb.get("diameter"),
+                  tb.get("circles", "dark"))
+    work.mkdir(parents=True, exist_ok=True)
+    res: dict = {"capture": str(capture), "preset": preset, "quick": truth.get("quick"),
+                 "working_depths_mm": depths, "timings_s": {}}
+    t = time.perf_counter()
+    res["centres"] = centre_metrics(capture, truth, true_cam, board)
+    res["timings_s"]["centres"] = time.perf_counter() - t
+    cams = {}
+    for bc in (True, False):
+        key = "with_bias_correction" if bc else "without_bias_correction"
+        t = time.perf_counter()
+        path = work / f"camera_{key}.json"
+        cams[bc] = run_calibrate_camera(capture, path, bias_correction=bc, threads=threads)
+        res["timings_s"][f"camera_{key}"] = time.perf_counter() - t
+        res.setdefault("camera", {})[key] = camera_metrics(cams[bc], true_cam, depths)
+    true_json = work / "camera_true.json"
+    true_cam.save(true_json)
+    for label, cj in (("estimated_camera", work / "camera_with_bias_correction.json"),
+                      ("true_camera", true_json)):
+        t = time.perf_counter()
+        lp = run_calibrate_lasers(capture, cj, work / f"lasers_{label}.json", threads=threads)
+        res["timings_s"][f"lasers_{label}"] = time.perf_counter() - t
+        res.setdefault("lasers", {})[label] = laser_metrics(lp, truth, true_cam, depths)
+        t = time.perf_counter()
+        he = run_calibrate_handeye(capture, cj, work / f"handeye_{label}.json", threads=threads)
+        res["timings_s"][f"handeye_{label}"] = time.perf_counter() - t
+        res.setdefault("handeye", {})[label] = handeye_metrics(he, truth, true_cam, depths)
+    return res
+
+
+def format_result(r: dict) -> str:
+    """Human-readable table of one capture's figures."""
+    ok = lambda v, lim: "ok" if v <= lim else "NOT MET"  # noqa: E731
+    L = [f"== {r['preset']} ({'quick' if r['quick'] else 'full'}) {r['capture']}",
+         f"   working volume: whole field of view, z = {r['working_depths_mm'][0]:g}-"
+         f"{r['working_depths_mm'][1]:g} mm",
+         f"   circle centres vs true imaged centroids: RMS {r['centres']['rms_px']:.4f} px, "
+         f"max {r['centres']['max_px']:.4f} px over {r['centres']['views']} views"]
+    L.append("   camera                      proj RMS px  (max)     reproj px  "
+             "fx err   fy err   cx err   cy err")
+    for key, c in r["camera"].items():
+        L.append(f"   {key:<27} {c['projection_rms_px']:.4f} ({c['projection_max_px']:.4f})  "
+                 f"{c['reprojection_rms_px']:.4f}   {c['fx_err_px']:+.4f}  {c['fy_err_px']:+.4f}  "
+                 f"{c['cx_err_px']:+.4f}  {c['cy_err_px']:+.4f}   "
+                 f"[{ok(c['projection_rms_px'], TARGETS['camera_px'])} <= {TARGETS['camera_px']}]")
+    L.append("   laser planes                angle deg   max dist mm   d err mm    fit RMS mm  points")
+    for label, lp in r["lasers"].items():
+        for laser, m in lp.items():
+            L.append(f"   {laser} ({label:<16})      {m['angle_deg']:.5f}     {m['max_distance_mm']:.5f}"
+                     f"      {m['d_err_mm']:+.5f}   {m['rms_mm']:.5f}     {m['points']}   "
+                     f"[{ok(m['angle_deg'], TARGETS['laser_angle_deg'])}, "
+                     f"{ok(m['max_distance_mm'], TARGETS['laser_dist_mm'])}]")
+    for label, he in r["handeye"].items():
+        p = he["pairs"]
+        L.append(f"   hand-eye ({label}; pairs used {p['used']}/{p['total']}, rejected {p['rejected']})")
+        L.append("     method         volume RMS mm  max mm   rot err deg  trans err mm  "
+                 "board consistency mm")
+        for name, m in he.items():
+            if name == "pairs":
+                continue
+            if "error" in m:
+                L.append(f"     {name:<14} failed: {m['error']}")
+                continue
+            flag = (f"  [{ok(m['volume_rms_mm'], TARGETS['handeye_mm'])} <= {TARGETS['handeye_mm']}; "
+                    f"1-sigma predicted by the noise: {m.get('predicted_volume_rms_mm', float('nan')):.5f}]"
+                    if name == "refined" else "")
+            L.append(f"     {name:<14} {m['volume_rms_mm']:.5f}        {m['volume_max_mm']:.5f}  "
+                     f"{m['rotation_err_deg']:.5f}      {m['translation_err_mm']:.5f}       "
+                     f"{m['board_consistency_mm']:.5f}{flag}")
+    L.append("   timings s: " + ", ".join(f"{k} {v:.1f}" for k, v in r["timings_s"].items()))
+    return "\n".join(L)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point."""
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--capture", type=Path, action="append",
+                    help="capture folder with truth.json (repeatable); default: see above")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--keep", type=Path, help="keep rendered captures and artefacts here")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    base = args.keep or Path(tempfile.mkdtemp(prefix="bench-calibration-"))
+    captures = args.capture
+    if not captures:
+        from crossline.sim import simulate
+
+        demo = ROOT / "data" / "raw" / "demo"
+        captures = []
+        for preset in ("paper", "compact"):
+            if preset == "paper" and (demo / "truth.json").is_file():
+                captures.append(demo)
+                continue
+            out = base / f"{preset}-quick-{args.seed}"
+            if not (out / "rig.yaml").is_file():
+                simulate(out, preset=preset, seed=args.seed, quick=True, threads=args.threads, progress=False)
+            captures.append(out)
+    results = []
+    for cap in captures:
+        r = evaluate(cap, base / f"artefacts-{cap.name}", args.threads)
+        results.append(r)
+        print(format_result(r), flush=True)
+    meta = {"load_average": os.getloadavg(), "cpus": os.cpu_count(), "targets": TARGETS}
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    write_json(RESULTS / "calibration.json", {"meta": meta, "results": results})
+    (RESULTS / "calibration.txt").write_text("\n\n".join(format_result(r) for r in results) + "\n")
+    if not args.keep:
+        shutil.rmtree(base, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

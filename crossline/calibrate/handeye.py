@@ -1,0 +1,681 @@
+"""Hand-eye calibration: ``X = T_tool_cam`` from arm poses and board views (AX = XB).
+
+Conventions (DESIGN.md §1): the arm reports ``T_base_tool``; PnP gives ``T_cam_board``; the
+board is fixed, so for every view ``T_base_board = T_base_tool_i @ X @ T_cam_board_i``. For
+a motion pair (i, j)::
+
+    A = inv(T_base_tool_j) @ T_base_tool_i,   B = T_cam_board_j @ inv(T_cam_board_i),   A X = X B
+
+(the paper's eq. 20–23). Steps:
+
+1. Board poses by PnP on bias-corrected centres; on a board that looks the same turned in its
+   plane (symmetric grid, chessboard), each view's labelling is one of several; the one used
+   is chosen so that every view agrees on one board frame (:func:`resolve_labellings`): first
+   by rotation consistency of motion pairs (a rotation angle is invariant under a change of
+   frame, so ``θ(A) = θ(B)`` for the right labelling; a wrong one adds a half turn about the
+   board normal), then confirmed with the first X: each view's implied ``T_base_board`` must
+   agree with the others'.
+2. Pairs with ``|θA − θB|`` above the tolerance are rejected and counted; motion whose
+   rotation axes are all nearly parallel is a :class:`CalibrationError`.
+3. Chou & Kamel (1991), the paper's method: ``q_A ⊗ q_X = q_X ⊗ q_B`` stacked for every pair,
+   ``q_X`` the right singular vector of the smallest singular value; then the translation by
+   linear least squares from ``(R_A − I) t_X = R_X t_B − t_A``. OpenCV's five methods
+   (Tsai, Park, Horaud, Andreff, Daniilidis) are run alongside.
+4. Refinement: X and ``T_base_board`` jointly, minimising the reprojection error (px) of every
+   board point in every view through ``T_cam_board_i = inv(X) inv(T_base_tool_i) T_base_board``
+   with the calibrated camera (scipy least squares), the circle-centre bias re-predicted from
+   the current estimate between rounds.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import logging
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from crossline.atomic import write_json
+from crossline.board import Board
+from crossline.calibrate.bias import centroid_offsets
+from crossline.calibrate.detect import board_symmetries
+from crossline.calibrate.lm import dense_normal, levenberg_marquardt
+from crossline.calibrate.pose import board_pose
+from crossline.camera import Camera
+from crossline.errors import CalibrationError
+from crossline.geometry import (
+    invert_transform,
+    make_transform,
+    matrix_to_quat,
+    matrix_to_rotvec,
+    orthonormalize,
+    rotation_angle,
+    rotvec_to_matrix,
+    transform_points,
+)
+
+__all__ = [
+    "OPENCV_METHODS",
+    "HandEye",
+    "check_motion",
+    "chou_kamel",
+    "consistency_mm",
+    "motion_pairs",
+    "opencv_handeye",
+    "pair_residuals",
+    "point_uncertainty",
+    "refine_handeye",
+    "resolve_labellings",
+    "run_calibrate_handeye",
+    "symmetry_transforms",
+]
+
+log = logging.getLogger(__name__)
+
+OPENCV_METHODS = {
+    "tsai": cv2.CALIB_HAND_EYE_TSAI,
+    "park": cv2.CALIB_HAND_EYE_PARK,
+    "horaud": cv2.CALIB_HAND_EYE_HORAUD,
+    "andreff": cv2.CALIB_HAND_EYE_ANDREFF,
+    "daniilidis": cv2.CALIB_HAND_EYE_DANIILIDIS,
+}
+MIN_PAIR_ROTATION_DEG = 1.0  # pairs rotating less say nothing about the rotation axis
+MIN_AXIS_SPREAD_DEG = 5.0  # rotation axes must span at least this angle
+
+
+@dataclass(frozen=True)
+class HandEye:
+    """The hand-eye result as stored in ``handeye.json``: ``T_tool_cam`` and everything else."""
+
+    T_tool_cam: np.ndarray
+    method: str = "refined"
+    extra: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        T = np.asarray(self.T_tool_cam, dtype=np.float64)
+        if T.shape != (4, 4):
+            raise ValueError(f"T_tool_cam must be 4x4, got shape {T.shape}")
+        object.__setattr__(self, "T_tool_cam", T)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON mapping with ``T_tool_cam``, ``method`` and the extras."""
+        out = dict(self.extra)
+        out.update(T_tool_cam=self.T_tool_cam.tolist(), method=self.method)
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> HandEye:
+        """From a mapping with ``T_tool_cam`` (and optionally ``method``)."""
+        extra = {k: v for k, v in data.items() if k not in ("T_tool_cam", "method")}
+        return cls(np.array(data["T_tool_cam"], dtype=np.float64), data.get("method", "refined"), extra)
+
+    def save(self, path: str | Path) -> None:
+        """Write ``handeye.json`` atomically."""
+        write_json(path, self.to_dict())
+
+    @classmethod
+    def load(cls, path: str | Path) -> HandEye:
+        """Read ``handeye.json``."""
+        path = Path(path)
+        try:
+            return cls.from_dict(json.loads(path.read_text()))
+        except (KeyError, ValueError, TypeError) as exc:
+            raise ValueError(f"{path}: not a hand-eye file: {exc}") from exc
+
+
+# ----------------------------------------------------------------------------- AX = XB
+
+
+def motion_pairs(
+    T_base_tool: np.ndarray, T_cam_board: np.ndarray, pairs: list[tuple[int, int]]
+) -> tuple[np.ndarray, np.ndarray]:
+    """``A`` and ``B`` (P, 4, 4) of the motion pairs (i, j): ``A X = X B`` (module docstring)."""
+    i = np.array([p[0] for p in pairs])
+    j = np.array([p[1] for p in pairs])
+    A = invert_transform(T_base_tool[j]) @ T_base_tool[i]
+    B = T_cam_board[j] @ invert_transform(T_cam_board[i])
+    return A, B
+
+
+def _quat_left(q: np.ndarray) -> np.ndarray:
+    """Matrices (..., 4, 4) with ``L(p) q = p ⊗ q`` (Hamilton product, scalar first)."""
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack([
+        np.stack([w, -x, -y, -z], -1),
+        np.stack([x, w, -z, y], -1),
+        np.stack([y, z, w, -x], -1),
+        np.stack([z, -y, x, w], -1),
+    ], -2)
+
+
+def _quat_right(q: np.ndarray) -> np.ndarray:
+    """Matrices (..., 4, 4) with ``R(p) q = q ⊗ p``."""
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack([
+        np.stack([w, -x, -y, -z], -1),
+        np.stack([x, w, z, -y], -1),
+        np.stack([y, -z, w, x], -1),
+        np.stack([z, y, -x, w], -1),
+    ], -2)
+
+
+def chou_kamel(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """X from motion pairs by Chou & Kamel's quaternion method (rotation by SVD, then translation).
+
+    For each pair ``q_A ⊗ q_X = q_X ⊗ q_B``, i.e. ``(L(q_A) − R(q_B)) q_X = 0``; stacked over all
+    pairs, ``q_X`` is the right singular vector of the smallest singular value. Both
+    quaternions of a pair are taken with a non-negative scalar part (equal rotation angles
+    give equal scalar parts). The translation solves ``(R_A − I) t_X = R_X t_B − t_A`` in the
+    least-squares sense.
+    """
+    qa = matrix_to_quat(A[:, :3, :3])
+    qb = matrix_to_quat(B[:, :3, :3])
+    M = (_quat_left(qa) - _quat_right(qb)).reshape(-1, 4)
+    _, _, Vt = np.linalg.svd(M)
+    qx = Vt[-1]
+    from crossline.geometry import quat_to_matrix
+
+    Rx = quat_to_matrix(qx / np.linalg.norm(qx))
+    C = (A[:, :3, :3] - np.eye(3)).reshape(-1, 3)
+    d = (np.einsum("ij,pj->pi", Rx, B[:, :3, 3]) - A[:, :3, 3]).reshape(-1)
+    tx, *_ = np.linalg.lstsq(C, d, rcond=None)
+    return make_transform(orthonormalize(Rx), tx)
+
+
+def opencv_handeye(T_base_tool: np.ndarray, T_cam_board: np.ndarray, method: str) -> np.ndarray:
+    """X by ``cv2.calibrateHandEye`` with one of :data:`OPENCV_METHODS`."""
+    R, t = cv2.calibrateHandEye(
+        list(T_base_tool[:, :3, :3]), list(T_base_tool[:, :3, 3:]),
+        list(T_cam_board[:, :3, :3]), list(T_cam_board[:, :3, 3:]),
+        method=OPENCV_METHODS[method],
+    )
+    return make_transform(orthonormalize(R), t.ravel())
+
+
+def pair_residuals(X: np.ndarray, A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per pair: rotation residual of ``AX`` vs ``XB`` (rad) and translation residual (mm)."""
+    L = A @ X
+    Rr = X @ B
+    rot = rotation_angle(np.swapaxes(L[:, :3, :3], 1, 2) @ Rr[:, :3, :3])
+    return rot, np.linalg.norm(L[:, :3, 3] - Rr[:, :3, 3], axis=1)
+
+
+def consistency_mm(X: np.ndarray, T_base_tool: np.ndarray, T_cam_board: np.ndarray, board: Board) -> float:
+    """RMS scatter (mm) of the board's points in the base frame over the views, given X.
+
+    Each view puts the board at ``T_base_tool_i X T_cam_board_i``; with the right X and exact
+    data all views agree. Independent of truth, it scores every method alike.
+    """
+    P = board.object_points()
+    T = T_base_tool @ X @ T_cam_board
+    pts = np.einsum("vij,nj->vni", T[:, :3, :3], P) + T[:, None, :3, 3]
+    return float(np.sqrt(np.mean(np.sum((pts - pts.mean(0)) ** 2, axis=-1))))
+
+
+def check_motion(A: np.ndarray, names: list[str] | None = None) -> dict[str, float]:
+    """Raise :class:`CalibrationError` if the arm's rotations cannot determine X.
+
+    X is determined only if at least two motions rotate about clearly different axes.
+    Returns the largest angle between rotation axes (deg) and the count of rotating pairs.
+    """
+    rv = matrix_to_rotvec(A[:, :3, :3])
+    th = np.linalg.norm(rv, axis=1)
+    big = th > np.radians(MIN_PAIR_ROTATION_DEG)
+    if big.sum() < 2:
+        raise CalibrationError(
+            f"degenerate hand-eye motion: only {int(big.sum())} of {len(A)} motion pairs rotate "
+            f"by more than {MIN_PAIR_ROTATION_DEG:g} deg; the arm must turn the camera between views"
+        )
+    ax = rv[big] / th[big, None]
+    cross = np.linalg.norm(np.cross(ax[:, None, :], ax[None, :, :]), axis=-1)
+    spread = float(np.degrees(np.arcsin(np.clip(cross.max(), 0.0, 1.0))))
+    if spread < MIN_AXIS_SPREAD_DEG:
+        raise CalibrationError(
+            f"degenerate hand-eye motion: all {int(big.sum())} rotating motion pairs turn about "
+            f"nearly the same axis (largest angle between rotation axes {spread:.2f} deg < "
+            f"{MIN_AXIS_SPREAD_DEG:g} deg); X is not determined along that axis. Take views "
+            f"rotated about at least two different axes"
+        )
+    return {"axis_spread_deg": spread, "rotating_pairs": int(big.sum())}
+
+
+# ----------------------------------------------------------------------------- labelling
+
+
+def symmetry_transforms(board: Board) -> list[np.ndarray]:
+    """Board-frame transforms ``S`` (4, 4), one per labelling the board's symmetry allows.
+
+    If a view's pose is ``T`` under one labelling, it is ``T @ S`` under the other; the first
+    is the identity. Matches :func:`crossline.calibrate.detect.board_symmetries`.
+    """
+    P = board.object_points()
+    c = 0.5 * (P.min(0) + P.max(0))
+    out = []
+    for perm in board_symmetries(board):
+        # the rotation in the board plane that carries each point k onto point perm[k]
+        d0, d1 = P[1] - P[0], P[perm[1]] - P[perm[0]]
+        if board.cols < 2 or np.linalg.norm(d0) == 0:  # pragma: no cover - boards have >= 2 cols
+            continue
+        a = np.arctan2(d1[1], d1[0]) - np.arctan2(d0[1], d0[0])
+        R = rotvec_to_matrix(np.array([0.0, 0.0, a]))
+        S = make_transform(R, c - R @ c)
+        assert np.allclose(transform_points(S, P), P[perm], atol=1e-9 * board.spacing)
+        out.append(S)
+    return out
+
+
+def resolve_labellings(
+    T_base_tool: np.ndarray, T_cam_board: np.ndarray, board: Board
+) -> tuple[np.ndarray, np.ndarray]:
+    """Choose per view the board labelling that makes all views agree on one board frame.
+
+    Returns the relabelled ``T_cam_board`` (V, 4, 4) and per view the index into
+    :func:`symmetry_transforms` applied to it (0 = as detected); the first view keeps its
+    detected labelling. Boards without symmetry are returned unchanged.
+    """
+    S = np.array(symmetry_transforms(board))
+    V, G = len(T_cam_board), len(S)
+    if G == 1 or V < 2:
+        return T_cam_board.copy(), np.zeros(V, dtype=int)
+    cand = T_cam_board[:, None] @ S[None]  # (V, G, 4, 4)
+    inv_cand = invert_transform(cand)
+    # rotation angle of every arm motion (i -> j), and of every board motion per labelling
+    thA = rotation_angle((invert_transform(T_base_tool)[None, :] @ T_base_tool[:, None])[..., :3, :3])
+    # thB[i, g, j, h]: angle of cand[j, h] @ inv(cand[i, g])
+    thB = rotation_angle(
+        (cand[None, None, :, :] @ inv_cand[:, :, None, None])[..., :3, :3]
+    )
+    iu, ju = np.triu_indices(V, 1)
+    best_choice, best_score = None, np.inf
+    for ref in range(V):
+        # each view's labelling from its motion relative to the reference view
+        choice = np.argmin(np.abs(thA[ref, :, None] - thB[ref, 0]), axis=1)
+        choice[ref] = 0
+        score = np.median(np.abs(thA[iu, ju] - thB[iu, choice[iu], ju, choice[ju]]))
+        if score < best_score - 1e-12:
+            best_choice, best_score = choice, score
+    choice = best_choice
+    # confirm with a first X: each view's board in the base frame must agree with the others'
+    P = board.object_points()
+    for _ in range(3):
+        Tc = cand[np.arange(V), choice]
+        A, B = motion_pairs(T_base_tool, Tc, list(zip(iu, ju, strict=True)))
+        X = chou_kamel(A, B)
+        Tbb = T_base_tool[:, None] @ X @ cand  # (V, G, 4, 4)
+        pts = np.einsum("vgij,nj->vgni", Tbb[..., :3, :3], P) + Tbb[..., None, :3, 3]
+        consensus = np.median(pts[np.arange(V), choice], axis=0)  # (N, 3)
+        err = np.sqrt(np.mean(np.sum((pts - consensus) ** 2, -1), -1))  # (V, G)
+        new = err.argmin(1)
+        if np.array_equal(new, choice):
+            break
+        choice = new
+    # the same symmetry applied to every view changes nothing physical: keep view 0 as detected
+    rel = S[choice] @ invert_transform(S[choice[0]])
+    idx = np.array([_sym_index(S, r) for r in rel])
+    return T_cam_board @ S[idx], idx
+
+
+def _sym_index(S: list[np.ndarray], T: np.ndarray) -> int:
+    return int(np.argmin([np.abs(s - T).max() for s in S]))
+
+
+# ----------------------------------------------------------------------------- refinement
+
+
+def _delta(x: np.ndarray) -> np.ndarray:
+    return make_transform(rotvec_to_matrix(x[:3]), x[3:])
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """Result of :func:`refine_handeye`."""
+
+    X: np.ndarray
+    T_base_board: np.ndarray
+    residuals: np.ndarray  # (V, N, 2) px: bias-corrected measurement minus projection
+    arm_corrections: np.ndarray  # (V, 6): flange rotation (rad, flange frame), position (mm, base)
+    iterations: int
+    covariance_X: np.ndarray  # (6, 6) of the perturbation X_true = X exp(rotation, translation)
+
+    @property
+    def rms_px(self) -> float:
+        """RMS reprojection error over all points of all views (px)."""
+        return float(np.sqrt(np.mean(np.sum(self.residuals**2, -1))))
+
+
+def _corrected_arm(T_base_tool: np.ndarray, xi: np.ndarray) -> np.ndarray:
+    """Arm poses with corrections ``xi`` (V, 6): rotation in the flange frame, position in base."""
+    R = T_base_tool[:, :3, :3] @ rotvec_to_matrix(xi[:, :3])
+    return make_transform(R, T_base_tool[:, :3, 3] + xi[:, 3:])
+
+
+_STEPS = np.r_[[1e-7] * 3, [1e-5] * 3, [1e-7] * 3, [1e-5] * 3, [1e-7] * 3, [1e-5] * 3]
+
+
+def _jacobian(fun, x: np.ndarray, *, V: int, N: int, with_arm: bool) -> np.ndarray:
+    """Forward-difference Jacobian of the hand-eye residuals (image rows, then arm priors).
+
+    A view's rows depend on X, T_base_board and its own arm correction only, so one component
+    of every view's correction is perturbed at once.
+    """
+    f0 = fun(x)
+    J = np.zeros((f0.size, x.size))
+    for k in range(12):
+        dx = np.zeros_like(x)
+        dx[k] = _STEPS[k]
+        J[:, k] = (fun(x + dx) - f0) / _STEPS[k]
+    if with_arm:
+        rows = np.arange(2 * N * V).reshape(V, 2 * N)
+        for m in range(6):
+            dx = np.zeros_like(x)
+            dx[12 + m :: 6] = _STEPS[12 + m]
+            df = (fun(x + dx) - f0) / _STEPS[12 + m]
+            cols = 12 + 6 * np.arange(V) + m
+            J[rows, cols[:, None]] = df[rows]
+            prior = 2 * N * V + (3 * np.arange(V) + m if m < 3 else 3 * V + 3 * np.arange(V) + m - 3)
+            J[prior, cols] = df[prior]
+    return J
+
+
+def refine_handeye(
+    camera: Camera,
+    board: Board,
+    points: np.ndarray,
+    T_base_tool: np.ndarray,
+    X0: np.ndarray,
+    T_base_board0: np.ndarray,
+    *,
+    sigma_px: float = 1.0,
+    arm_sigma_mm: float = 0.0,
+    arm_sigma_rad: float = 0.0,
+    bias_correction: bool = True,
+    rounds: int = 3,
+) -> Refinement:
+    """X and ``T_base_board`` minimising the reprojection error of measured points (V, N, 2).
+
+    Every board point of every view is projected through
+    ``T_cam_board_i = inv(X) inv(T_base_tool_i) T_base_board`` with the calibrated camera.
+    With ``arm_sigma_mm`` and ``arm_sigma_rad`` > 0 the reported arm poses are not taken as
+    exact: each view's flange pose gets a correction (3 rotations in the flange frame, 3
+    translations in the base frame) weighted by those standard deviations against the
+    image residuals weighted by ``sigma_px`` (maximum likelihood when the arm's error is
+    Gaussian). With zero arm sigmas only X and ``T_base_board`` move (12 parameters). The
+    circle-centre bias is re-predicted from the current estimate for each of ``rounds``.
+    """
+    P = board.object_points()
+    pts = np.asarray(points, dtype=np.float64)
+    V, N = pts.shape[:2]
+    with_arm = arm_sigma_mm > 0 and arm_sigma_rad > 0
+    X, Tbb = X0.copy(), T_base_board0.copy()
+    xi = np.zeros((V, 6))
+    offsets = np.zeros_like(pts)
+    correct = bias_correction and board.pattern != "chessboard"
+
+    def cam_board(X: np.ndarray, Tbb: np.ndarray, xi: np.ndarray) -> np.ndarray:
+        return invert_transform(X) @ invert_transform(_corrected_arm(T_base_tool, xi)) @ Tbb
+
+    sol = None
+    iterations = 0  # LM iterations over all rounds
+    for _ in range(rounds if correct else 1):
+        if correct:
+            offsets = np.array([
+                centroid_offsets(camera, board, matrix_to_rotvec(T[:3, :3]), T[:3, 3])
+                for T in cam_board(X, Tbb, xi)
+            ])
+        obs = pts - offsets
+        X_base, Tbb_base = X.copy(), Tbb.copy()
+
+        def fun(x: np.ndarray, X_base=X_base, Tbb_base=Tbb_base, obs=obs) -> np.ndarray:
+            xv = x[12:].reshape(V, 6) if with_arm else np.zeros((V, 6))
+            Tc = cam_board(X_base @ _delta(x[:6]), Tbb_base @ _delta(x[6:12]), xv)
+            pc = np.einsum("vij,nj->vni", Tc[:, :3, :3], P) + Tc[:, None, :3, 3]
+            img = ((camera.project(pc) - obs) / sigma_px).ravel()
+            if not with_arm:
+                return img
+            prior = [(xv[:, :3] / arm_sigma_rad).ravel(), (xv[:, 3:] / arm_sigma_mm).ravel()]
+            return np.concatenate([img, *prior])
+
+        x0 = np.zeros(12 + (6 * V if with_arm else 0))
+        if with_arm:
+            x0[12:] = xi.ravel()
+        sol = levenberg_marquardt(fun, dense_normal(partial(_jacobian, fun, V=V, N=N, with_arm=with_arm)), x0)
+        iterations += sol.iterations
+        X = X_base @ _delta(sol.x[:6])
+        Tbb = Tbb_base @ _delta(sol.x[6:12])
+        if with_arm:
+            xi = sol.x[12:].reshape(V, 6)
+    res = sol.fun[: 2 * N * V].reshape(V, N, 2) * sigma_px
+    # covariance from the whitened problem, scaled by the reduced chi-square
+    dof = max(sol.fun.size - sol.x.size, 1)
+    cov = np.linalg.pinv(sol.normal) * (2.0 * sol.cost / dof)
+    return Refinement(X, Tbb, res, xi, iterations, cov[:6, :6])
+
+
+def point_uncertainty(X: np.ndarray, cov: np.ndarray, points_cam: np.ndarray) -> np.ndarray:
+    """1-sigma uncertainty (mm, RMS of the 3-D error) of camera points carried by X to the tool.
+
+    ``cov`` is the covariance of the perturbation ``X_true = X exp(ω, t)`` (rad, mm).
+    """
+    p = np.asarray(points_cam, dtype=np.float64)
+    R = X[:3, :3]
+    # d(X p) = R (ω × p + t) = R [-[p]x | I] (ω, t)
+    skew = np.zeros((len(p), 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -p[:, 2], p[:, 1], -p[:, 0]
+    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = p[:, 2], -p[:, 1], p[:, 0]
+    Jp = np.concatenate([-skew, np.broadcast_to(np.eye(3), skew.shape)], axis=2)
+    Jp = R @ Jp
+    return np.sqrt(np.einsum("nij,jk,nik->n", Jp, cov, Jp))
+
+
+def arm_noise_estimate(
+    X: np.ndarray, T_base_tool: np.ndarray, T_cam_board: np.ndarray
+) -> tuple[float, float, np.ndarray]:
+    """Per-axis standard deviations of the arm's pose error (mm, rad) implied by a solution X.
+
+    Each view implies the flange pose ``T_base_board inv(T_cam_board_i) inv(X)``, with
+    ``T_base_board`` the views' mean; its difference from the reported pose is the arm's error
+    (plus a little PnP noise). 12 of the 6V numbers are spent on X and ``T_base_board``.
+    Returns (sigma_mm, sigma_rad, T_base_board).
+    """
+    V = len(T_base_tool)
+    Tbb = _mean_transform(T_base_tool @ X @ T_cam_board)
+    implied = Tbb @ invert_transform(T_cam_board) @ invert_transform(X)
+    rot = matrix_to_rotvec(np.swapaxes(T_base_tool[:, :3, :3], 1, 2) @ implied[:, :3, :3])
+    tr = implied[:, :3, 3] - T_base_tool[:, :3, 3]
+    dof = max(3 * V - 6, 1)
+    return float(np.sqrt(np.sum(tr**2) / dof)), float(np.sqrt(np.sum(rot**2) / dof)), Tbb
+
+
+def _mean_transform(T: np.ndarray) -> np.ndarray:
+    """Rotation mean (chordal, by SVD) and translation mean of transforms (V, 4, 4)."""
+    return make_transform(orthonormalize(T[:, :3, :3].sum(0)), T[:, :3, 3].mean(0))
+
+
+# ----------------------------------------------------------------------------- stage
+
+
+def solve_handeye(
+    camera: Camera,
+    board: Board,
+    points: np.ndarray,
+    T_base_tool: np.ndarray,
+    names: list[str],
+    *,
+    angle_tolerance_deg: float = 0.05,
+    bias_correction: bool = True,
+) -> HandEye:
+    """All methods and the refined X from measured points (V, N, 2) and arm poses (V, 4, 4)."""
+    V = len(points)
+    if V < 3:
+        raise CalibrationError(f"hand-eye calibration needs at least 3 views with the board found, got {V}")
+    fits = [board_pose(camera, board, p, bias_correction=bias_correction) for p in points]
+    T0 = np.array([f.T_cam_board for f in fits])
+    Tc, sym = resolve_labellings(T_base_tool, T0, board)
+    S = symmetry_transforms(board)
+    # the points relabelled alike: the pose T @ S sees point k where the detection had perm[k]
+    perms = board_symmetries(board)
+    pts = np.array([p[perms[s]] for p, s in zip(points, sym, strict=True)])
+    all_pairs = list(itertools.combinations(range(V), 2))
+    A, B = motion_pairs(T_base_tool, Tc, all_pairs)
+    thA, thB = rotation_angle(A[:, :3, :3]), rotation_angle(B[:, :3, :3])
+    keep = np.abs(thA - thB) <= np.radians(angle_tolerance_deg)
+    rejected = [
+        {"pair": [names[i], names[j]], "theta_A_deg": float(np.degrees(thA[k])),
+         "theta_B_deg": float(np.degrees(thB[k]))}
+        for k, (i, j) in enumerate(all_pairs) if not keep[k]
+    ]
+    for r in rejected:
+        log.warning("hand-eye pair %s rejected: rotation angles %.4f vs %.4f deg differ by more than %g deg",
+                    r["pair"], r["theta_A_deg"], r["theta_B_deg"], angle_tolerance_deg)
+    # a view in more rejected than accepted pairs is the culprit (its arm pose or its image):
+    # it is left out of everything that uses absolute poses (OpenCV, the refinement)
+    bad_count = np.zeros(V, dtype=int)
+    for k, (i, j) in enumerate(all_pairs):
+        if not keep[k]:
+            bad_count[i] += 1
+            bad_count[j] += 1
+    use = bad_count <= (V - 1) / 2
+    rejected_views = [
+        {"image": names[v], "rejected_pairs": int(bad_count[v]), "pairs": V - 1}
+        for v in range(V) if not use[v]
+    ]
+    for r in rejected_views:
+        log.warning("%s: left out of the hand-eye solution: %d of its %d motion pairs have "
+                    "mismatching rotation angles", r["image"], r["rejected_pairs"], r["pairs"])
+    in_use = np.array([use[i] and use[j] for i, j in all_pairs])
+    keep &= in_use
+    if keep.sum() < 2 or use.sum() < 3:
+        raise CalibrationError(
+            f"hand-eye calibration: only {int(keep.sum())} of {len(all_pairs)} motion pairs have "
+            f"matching rotation angles (|theta_A - theta_B| <= {angle_tolerance_deg:g} deg); "
+            f"check that poses.csv matches the images"
+        )
+    motion = check_motion(A[keep])
+    Ak, Bk = A[keep], B[keep]
+    all_names, all_fits, all_Tc, all_sym = names, fits, Tc, sym
+    u = np.nonzero(use)[0]
+    T_base_tool, Tc, pts = T_base_tool[u], Tc[u], pts[u]
+    names = [names[k] for k in u]
+    methods: dict[str, dict[str, Any]] = {}
+
+    def record(name: str, X: np.ndarray) -> None:
+        rot, tr = pair_residuals(X, Ak, Bk)
+        methods[name] = {
+            "T_tool_cam": X,
+            "rotation_residual_deg_rms": float(np.degrees(np.sqrt(np.mean(rot**2)))),
+            "translation_residual_mm_rms": float(np.sqrt(np.mean(tr**2))),
+            "board_consistency_mm": consistency_mm(X, T_base_tool, Tc, board),
+        }
+
+    X_ck = chou_kamel(Ak, Bk)
+    record("chou_kamel", X_ck)
+    for name in OPENCV_METHODS:
+        try:
+            record(name, opencv_handeye(T_base_tool, Tc, name))
+        except cv2.error as exc:  # pragma: no cover - OpenCV failures are reported, not fatal
+            methods[name] = {"error": str(exc).strip().splitlines()[-1]}
+    # image noise from the single-view fits (6 pose parameters each), arm noise from X_ck
+    n_obs = pts.shape[1] * 2
+    # (rms_px is the RMS of 2-D residuals: per coordinate it is rms / sqrt 2)
+    # the floors lie far below any real noise; they keep exact (synthetic) data well conditioned
+    sigma_px = max(float(np.sqrt(np.mean([f.rms_px**2 for f in fits]) / 2 * n_obs / (n_obs - 6))), 1e-4)
+    s_mm, s_rad, Tbb0 = arm_noise_estimate(X_ck, T_base_tool, Tc)
+    s_mm, s_rad = max(s_mm, 1e-5), max(s_rad, 1e-8)
+    plain = refine_handeye(camera, board, pts, T_base_tool, X_ck, Tbb0, bias_correction=bias_correction)
+    record("reprojection", plain.X)
+    methods["reprojection"]["reprojection_rms_px"] = plain.rms_px
+    ref = refine_handeye(camera, board, pts, T_base_tool, plain.X, plain.T_base_board, sigma_px=sigma_px,
+                         arm_sigma_mm=s_mm, arm_sigma_rad=s_rad, bias_correction=bias_correction)
+    X, Tbb, res = ref.X, ref.T_base_board, ref.residuals
+    record("refined", X)
+    methods["refined"]["reprojection_rms_px"] = ref.rms_px
+    # what the noise allows: X's uncertainty at the boards' distance, on the optical axis
+    z = float(np.median(Tc[:, 2, 3]))
+    methods["refined"]["uncertainty"] = {
+        "covariance_X": ref.covariance_X,
+        "rotation_deg_1sigma": float(np.degrees(np.sqrt(np.trace(ref.covariance_X[:3, :3])))),
+        "translation_mm_1sigma": float(np.sqrt(np.trace(ref.covariance_X[3:, 3:]))),
+        "board_distance_mm": z,
+        "point_mm_1sigma_at_board_distance": float(
+            point_uncertainty(X, ref.covariance_X, np.array([[0.0, 0.0, z]]))[0]
+        ),
+    }
+    methods["refined"]["noise_model"] = {
+        "image_sigma_px": sigma_px, "arm_sigma_mm": s_mm, "arm_sigma_rad": s_rad,
+        "arm_corrections_rms_mm": float(np.sqrt(np.mean(ref.arm_corrections[:, 3:] ** 2))),
+        "arm_corrections_rms_rad": float(np.sqrt(np.mean(ref.arm_corrections[:, :3] ** 2))),
+    }
+    view_rms = np.sqrt(np.mean(np.sum(res**2, -1), -1))
+    extra = {
+        "methods": methods,
+        "T_base_board": Tbb,
+        "pairs": {
+            "total": len(all_pairs),
+            "used": int(keep.sum()),
+            "rejected": int((~keep).sum()),
+            "angle_tolerance_deg": angle_tolerance_deg,
+            "rejected_pairs": rejected,
+            "rejected_views": rejected_views,
+            **motion,
+        },
+        "board_poses": [
+            {"image": n, "used": bool(use[k]), "T_cam_board": T,
+             "labelling_turn_deg": float(np.degrees(np.arctan2(S[s][1, 0], S[s][0, 0]))),
+             "pnp_rms_px": f.rms_px,
+             "refined_rms_px": float(view_rms[int(np.searchsorted(u, k))]) if use[k] else None}
+            for k, (n, T, s, f) in enumerate(zip(all_names, all_Tc, all_sym, all_fits, strict=True))
+        ],
+        "residuals": {n: r for n, r in zip(names, res, strict=True)},
+        "reprojection_rms_px": methods["refined"]["reprojection_rms_px"],
+    }
+    return HandEye(X, "refined", extra)
+
+
+def run_calibrate_handeye(
+    capture: str | Path,
+    camera_json: str | Path,
+    out: str | Path,
+    *,
+    angle_tolerance_deg: float = 0.05,
+    threads: int = 1,
+) -> HandEye:
+    """Stage: solve X = T_tool_cam from ``calibration/handeye`` and write ``handeye.json``."""
+    from crossline.calibrate.camera import detect_views
+    from crossline.capture import open_capture
+
+    cv2.setNumThreads(1)  # parallelism comes from our pool of `threads` workers (determinism)
+    cap = open_capture(capture)
+    camera = Camera.load(camera_json)
+    board = cap.rig.board
+    shape = (cap.rig.sensor.height, cap.rig.sensor.width)
+    names = [str(p.relative_to(cap.root)) for p in cap.handeye_images]
+    dets = detect_views(cap.handeye_images, board, shape, threads)
+    skipped = []
+    for n, d in zip(names, dets, strict=True):
+        if not d.found:
+            log.warning("%s: skipped: %s", n, d.reason)
+            skipped.append({"image": n, "reason": d.reason})
+    use = [k for k, d in enumerate(dets) if d.found]
+    if len(use) < 3:
+        lines = "\n".join(f"  - {s['image']}: {s['reason']}" for s in skipped)
+        raise CalibrationError(
+            f"hand-eye calibration needs at least 3 views with the board found, got {len(use)} of "
+            f"{len(names)}:\n{lines}"
+        )
+    he = solve_handeye(
+        camera, board, np.array([dets[k].points for k in use]), cap.handeye_T_base_tool[use],
+        [names[k] for k in use], angle_tolerance_deg=angle_tolerance_deg,
+    )
+    he.extra["skipped_views"] = skipped
+    he.save(out)
+    m = he.extra["methods"]
+    log.info("hand-eye: %d views, %d/%d pairs used; reprojection RMS %.4f px; board consistency "
+             "Chou-Kamel %.4f mm, refined %.4f mm", len(use), he.extra["pairs"]["used"],
+             he.extra["pairs"]["total"], he.extra["reprojection_rms_px"],
+             m["chou_kamel"]["board_consistency_mm"], m["refined"]["board_consistency_mm"])
+    return he

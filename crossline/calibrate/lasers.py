@@ -1,0 +1,342 @@
+"""Laser-plane calibration (the paper's §2.5, generalised to any number of board poses).
+
+For each pose of each laser:
+
+1. the board pose ``T_cam_board`` by PnP on the lasers-off image (bias-corrected centres);
+2. the stripe: laser-on minus lasers-off image (ambient light and the board's print cancel),
+   grey-centre per column (:func:`crossline.stripes.grey_centre`; per row when the stripe is
+   steeper than 45°, so that profiles cut the stripe at the smaller angle), with the
+   threshold as a fraction of the stripe's peak level;
+3. only centres whose whole window lies on the board, away from every albedo edge (circle
+   rims, chessboard square edges) by ``margin_px``, are kept: at an albedo edge the stripe's
+   profile is cut or weighted unevenly, which shifts its centre;
+4. each centre's ray (undistorted) is intersected with the board plane.
+
+One plane per laser is then fitted to the points of all its poses: a least-median start
+from random triples, then trimmed least squares (points beyond ``trim`` robust sigmas are
+dropped) until the inliers no longer change.
+"""
+
+from __future__ import annotations
+
+import logging
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from crossline.board import Board
+from crossline.calibrate.detect import detect_board
+from crossline.calibrate.pose import board_pose
+from crossline.camera import Camera
+from crossline.errors import CalibrationError
+from crossline.geometry import fit_plane, plane_distance
+from crossline.laser import LASERS, LaserPlane, LaserPlanes
+
+__all__ = [
+    "PoseStripe",
+    "board_plane_points",
+    "edge_clearance",
+    "robust_plane",
+    "run_calibrate_lasers",
+    "stripe_points",
+]
+
+log = logging.getLogger(__name__)
+
+MIN_CENTRES = 20  # fewer stripe centres on the board than this: no stripe
+PAD_PX = 3  # how far the grey-centre window reaches beyond the run above threshold
+
+
+@dataclass(frozen=True)
+class PoseStripe:
+    """Stripe points of one board pose: camera-frame points and their pixels."""
+
+    points: np.ndarray  # (M, 3) mm, camera frame
+    uv: np.ndarray  # (M, 2) px
+    T_cam_board: np.ndarray
+    board_rms_px: float
+    axis: str  # "column" or "row": the direction of the profiles
+    n_centres: int  # centres found before the board-area filter
+
+
+def board_plane_points(camera: Camera, T_cam_board: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Camera-frame points (N, 3) where the rays through pixels (N, 2) meet the board plane."""
+    r = camera.rays(np.asarray(uv, dtype=np.float64).reshape(-1, 2))
+    n = T_cam_board[:3, 2]
+    lam = (n @ T_cam_board[:3, 3]) / (r @ n)
+    return r * lam[:, None]
+
+
+def edge_clearance(board: Board, xy: np.ndarray, board_margin: float | None = None) -> np.ndarray:
+    """Distance (mm) from board points (N, 2) to the nearest albedo edge; < 0 off the board.
+
+    Albedo edges are circle rims (circle grids) or square edges (chessboards). The board's
+    usable area is the grid's bounding box grown by ``board_margin`` (default: one circle
+    diameter beyond the outer centres; the chessboard's outer squares).
+    """
+    xy = np.asarray(xy, dtype=np.float64)
+    x, y = xy[..., 0], xy[..., 1]
+    s = board.spacing
+    ex, ey = board.extent()
+    if board.pattern == "chessboard":
+        m = s if board_margin is None else board_margin
+        kx = np.clip(np.round(x / s), -1, board.cols)
+        ky = np.clip(np.round(y / s), -1, board.rows)
+        dx = np.where((y > -s) & (y < board.rows * s), np.abs(x - kx * s), np.inf)
+        dy = np.where((x > -s) & (x < board.cols * s), np.abs(y - ky * s), np.inf)
+        clear = np.minimum(dx, dy)
+    else:
+        m = board.diameter if board_margin is None else board_margin
+        R = 0.5 * board.diameter
+        clear = np.full(x.shape, np.inf)
+        r0 = np.floor(y / s)
+        for dr in (-1, 0, 1, 2):
+            r = np.clip(r0 + dr, 0, board.rows - 1)
+            if board.pattern == "asymmetric":
+                c0 = np.round((x - (r % 2) * s) / (2 * s))
+                cands = [np.clip(c0 + dc, 0, board.cols - 1) for dc in (-1, 0, 1)]
+                cx = [(2 * c + r % 2) * s for c in cands]
+            else:
+                c0 = np.round(x / s)
+                cx = [np.clip(c0 + dc, 0, board.cols - 1) * s for dc in (-1, 0, 1)]
+            for cxx in cx:
+                clear = np.minimum(clear, np.abs(np.hypot(x - cxx, y - r * s) - R))
+    inside = np.minimum.reduce([x + m, y + m, ex + m - x, ey + m - y])
+    return np.where(inside < 0, inside, np.minimum(clear, inside))
+
+
+def _stripe_axis(diff: np.ndarray, thr: float, keep) -> str:
+    """'column' if the stripe is flatter than 45° in the image, else 'row'."""
+    v, u = np.nonzero(diff > thr)
+    if len(u) > 200_000:
+        step = len(u) // 200_000 + 1
+        u, v = u[::step], v[::step]
+    ok = keep(np.column_stack([u, v]).astype(np.float64))
+    u, v = u[ok], v[ok]
+    if len(u) < 3:
+        return "column"
+    c = np.cov(np.vstack([u, v]).astype(np.float64))
+    _, V = np.linalg.eigh(c)
+    d = V[:, 1]
+    return "column" if abs(d[0]) >= abs(d[1]) else "row"
+
+
+def stripe_points(
+    camera: Camera,
+    board: Board,
+    board_image: np.ndarray,
+    laser_image: np.ndarray,
+    *,
+    threshold: float = 0.2,
+    margin_px: float = 4.0,
+    bias_correction: bool = True,
+    name: str = "laser image",
+) -> PoseStripe:
+    """Stripe points on the board plane (camera frame) of one pose; see the module docstring.
+
+    ``threshold`` is a fraction of the stripe's peak level in laser-on minus lasers-off.
+    Raises :class:`CalibrationError` naming ``name`` when no stripe lies on the board.
+    """
+    from crossline.stripes import full_scale, grey_centre
+
+    det = detect_board(board_image, board)
+    if not det.found:
+        raise CalibrationError(f"{name}: {det.reason} in the lasers-off image of this pose")
+    pose = board_pose(camera, board, det.points, bias_correction=bias_correction)
+    T = pose.T_cam_board
+    n = T[:3, 2]
+    full = full_scale(laser_image.dtype)
+    # laser-on minus the lasers-off image scaled to the laser image's exposure (calibration
+    # laser images may be taken with a shorter exposure than the board views)
+    a, b = ambient_model(board_image, laser_image)
+    diff_f = laser_image.astype(np.float32) - (a * board_image.astype(np.float32) + b)
+    # grey_centre wants unsigned integers: keep 1/16 of a count of resolution
+    diff = np.clip(np.round(diff_f * 16.0), 0, 65535).astype(np.uint16)
+    full16 = 65535.0
+
+    def clearance_px(uv: np.ndarray) -> np.ndarray:
+        r = camera.rays(uv)
+        cosi = np.abs(r @ n)
+        lam = (n @ T[:3, 3]) / (r @ n)
+        p = r * lam[:, None]
+        xy = p @ T[:3, :3] - T[:3, :3].T @ T[:3, 3]  # board frame (x, y, ~0)
+        # mm per pixel on the board: depth / f, stretched by the obliquity
+        mm_px = np.abs(lam) / camera.fx / np.maximum(cosi, 0.2)
+        return edge_clearance(board, xy[:, :2]) / mm_px
+
+    # the stripe's level: a high order statistic of the on-board difference
+    sub = diff_f[::7, ::7]
+    noise = 16.0 * 1.4826 * float(np.median(np.abs(sub - np.median(sub))))
+    k = 400
+    flat = diff.reshape(-1)
+    top = np.partition(flat, flat.size - k)[flat.size - k :] if flat.size > k else flat
+    peak = float(np.median(top))
+    floor = max(8.0 * noise, 0.02 * full * 16.0)
+    if peak <= floor:
+        raise CalibrationError(
+            f"{name}: no laser stripe on the board: the laser-on image is no brighter than the "
+            f"lasers-off image (peak difference {peak / 16:.1f}, needs > {floor / 16:.1f})"
+        )
+    thr = max(threshold * peak, floor * 0.5)
+    axis = _stripe_axis(diff, thr, lambda uv: clearance_px(uv) > 0)
+    img = diff if axis == "column" else np.ascontiguousarray(diff.T)
+    c = grey_centre(img, threshold=thr / full16, min_width=2.0, max_width=80.0, pad=PAD_PX)
+    ok = (c["flags"] & ~np.uint8(4)) == 0  # saturation of the difference is harmless
+    col, v, width = c["u"][ok], c["v"][ok], c["width"][ok]
+    n_centres = int(ok.sum())
+    # every pixel of each window (run ± pad ± background pixels) must clear the albedo edges
+    half = 0.5 * width + PAD_PX + 3
+    reach = int(np.ceil(half.max())) if len(half) else 0
+    steps = np.arange(-reach, reach + 1)
+    rows = v[:, None] + steps[None, :]
+    inwin = np.abs(steps[None, :]) <= half[:, None]
+    cols = np.broadcast_to(col[:, None], rows.shape)
+    uv = np.stack([cols, rows], -1) if axis == "column" else np.stack([rows, cols], -1)
+    clear = np.full(rows.shape, np.inf)
+    if inwin.any():
+        clear[inwin] = clearance_px(uv[inwin])
+    good = np.all(clear >= margin_px, axis=1)
+    centres = np.column_stack([col, v]) if axis == "column" else np.column_stack([v, col])
+    centres = centres[good]
+    if len(centres) < MIN_CENTRES:
+        raise CalibrationError(
+            f"{name}: no laser stripe on the board: {len(centres)} stripe centres clear of the "
+            f"circles and the board's edge (of {n_centres} found), at least {MIN_CENTRES} needed"
+        )
+    pts = board_plane_points(camera, T, centres)
+    return PoseStripe(pts, centres, T, pose.rms_px, axis, n_centres)
+
+
+def ambient_model(board_image: np.ndarray, laser_image: np.ndarray, step: int = 3) -> tuple[float, float]:
+    """``(a, b)`` with ``laser ≈ a · board + b`` off the stripe: the same scene at another exposure.
+
+    A robust start (a line through the medians of the laser image in bins of the board
+    image's level, which the few stripe pixels cannot move), then least squares on a
+    subsample without the pixels beyond 3 robust sigmas (the stripe, saturated pixels).
+    """
+    x = board_image[::step, ::step].astype(np.float64).ravel()
+    y = laser_image[::step, ::step].astype(np.float64).ravel()
+    edges = np.unique(np.quantile(x, np.linspace(0.0, 1.0, 33)))
+    idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, max(len(edges) - 2, 0))
+    bins = [k for k in range(len(edges) - 1) if np.count_nonzero(idx == k) >= 10]
+    if len(bins) >= 2:
+        xm = np.array([np.median(x[idx == k]) for k in bins])
+        ym = np.array([np.median(y[idx == k]) for k in bins])
+        a, b = np.polyfit(xm, ym, 1)
+    else:  # a flat lasers-off image: only an offset
+        a, b = 0.0, float(np.median(y))
+    for _ in range(3):
+        r = y - (a * x + b)
+        sigma = max(1.4826 * float(np.median(np.abs(r - np.median(r)))), 0.5)
+        keep = np.abs(r - np.median(r)) <= 3.0 * sigma
+        if keep.sum() < 3 or np.ptp(x[keep]) == 0:
+            break
+        a, b = np.polyfit(x[keep], y[keep], 1)
+    return float(a), float(b)
+
+
+def robust_plane(
+    points: np.ndarray, trim: float = 3.0, samples: int = 300, seed: int = 0
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """Plane ``(n, d)`` through points (N, 3) and the inlier mask: LMedS start, trimmed LSQ."""
+    p = np.asarray(points, dtype=np.float64)
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, len(p), size=(samples, 3))
+    a, b, c = p[idx[:, 0]], p[idx[:, 1]], p[idx[:, 2]]
+    nn = np.cross(b - a, c - a)
+    norm = np.linalg.norm(nn, axis=1)
+    ok = norm > 1e-9 * np.max(norm)
+    nn = nn[ok] / norm[ok, None]
+    dd = -np.sum(nn * a[ok], axis=1)
+    med = np.median(np.abs(p @ nn.T + dd), axis=0)
+    best = int(np.argmin(med))
+    n, d = nn[best], dd[best]
+    inl = np.ones(len(p), dtype=bool)
+    for _ in range(50):
+        r = plane_distance(p, n, d)
+        sigma = 1.4826 * np.median(np.abs(r[inl] - np.median(r[inl])))
+        new = np.abs(r) <= max(trim * sigma, 1e-12)
+        if new.sum() < 3:
+            break
+        n, d = fit_plane(p[new])
+        if np.array_equal(new, inl):
+            break
+        inl = new
+    return n, float(d), inl
+
+
+def run_calibrate_lasers(
+    capture: str | Path,
+    camera_json: str | Path,
+    out: str | Path,
+    *,
+    threshold: float = 0.2,
+    trim: float = 3.0,
+    threads: int = 1,
+    margin_px: float = 4.0,
+) -> LaserPlanes:
+    """Stage: fit the planes of lasers A and B and write ``lasers.json``."""
+    from crossline.capture import open_capture
+    from crossline.imageio import read_image
+
+    cv2.setNumThreads(1)  # parallelism comes from our pool of `threads` workers (determinism)
+    cap = open_capture(capture)
+    camera = Camera.load(camera_json)
+    board = cap.rig.board
+    shape = (cap.rig.sensor.height, cap.rig.sensor.width)
+
+    def one(view) -> tuple[Any, PoseStripe]:
+        b = read_image(view.board_image, shape)
+        la = read_image(view.laser_image, shape)
+        name = str(view.laser_image.relative_to(cap.root))
+        return view, stripe_points(camera, board, b, la, threshold=threshold, margin_px=margin_px, name=name)
+
+    jobs = [v for laser in LASERS for v in cap.laser_views[laser]]
+    if threads > 1:
+        with ThreadPoolExecutor(max_workers=threads) as pool:
+            results = list(pool.map(one, jobs))
+    else:
+        results = [one(v) for v in jobs]
+    planes = {}
+    for laser in LASERS:
+        mine = [(v, s) for v, s in results if v.laser == laser]
+        pts = np.concatenate([s.points for _, s in mine])
+        nrm, d, inl = robust_plane(pts, trim=trim)
+        k = 0
+        poses = []
+        for v, s in mine:
+            m = len(s.points)
+            sl = inl[k : k + m]
+            r = plane_distance(s.points[sl], nrm, d)
+            poses.append({
+                "pose": v.pose,
+                "board_image": str(v.board_image.relative_to(cap.root)),
+                "laser_image": str(v.laser_image.relative_to(cap.root)),
+                "profiles": s.axis,
+                "n_centres": s.n_centres,
+                "n_points": m,
+                "n_used": int(sl.sum()),
+                "rms_mm": float(np.sqrt(np.mean(r**2))) if len(r) else None,
+                "board_rms_px": s.board_rms_px,
+                "T_cam_board": s.T_cam_board,
+            })
+            k += m
+        r = plane_distance(pts[inl], nrm, d)
+        planes[laser] = LaserPlane(nrm, d, {
+            "rms_mm": float(np.sqrt(np.mean(r**2))),
+            "n_points": len(pts),
+            "n_used": int(inl.sum()),
+            "n_rejected": int((~inl).sum()),
+            "poses": poses,
+        })
+        log.info("laser %s: n = %s, d = %.4f mm, RMS %.4f mm over %d points (%d rejected)",
+                 laser, np.round(nrm, 6), d, planes[laser].extra["rms_mm"], inl.sum(), (~inl).sum())
+    result = LaserPlanes(planes["A"], planes["B"], {
+        "parameters": {"threshold": threshold, "trim": trim, "margin_px": margin_px},
+    })
+    result.save(out)
+    return result

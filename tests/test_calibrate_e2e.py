@@ -1,0 +1,159 @@
+"""The three calibration stages end to end on a rendered `--quick` capture, through the CLI.
+
+Scored against the capture's truth.json (tests may read it; the stages never do). The bounds
+are about three times what the noise of a quick capture allows (benchmarks/ has the figures).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from crossline.calibrate.handeye import HandEye
+from crossline.camera import Camera
+from crossline.cli import main
+from crossline.geometry import angle_between, transform_points
+from crossline.imageio import read_image, write_png
+from crossline.laser import LaserPlanes
+
+pytestmark = pytest.mark.slow
+
+
+def _truth(capture: Path) -> dict:
+    return json.loads((capture / "truth.json").read_text())
+
+
+def _true_camera(truth: dict) -> Camera:
+    c = truth["camera"]
+    return Camera(np.array(c["K"]), np.array(c["dist"]), tuple(c["image_size"]))
+
+
+def _volume(cam: Camera, z0: float = 115.0, z1: float = 185.0, n: int = 11) -> np.ndarray:
+    """Camera-frame points over the field of view, z0..z1 mm ahead (the paper's volume)."""
+    w, h = cam.image_size
+    u, v = np.meshgrid(np.linspace(0, w - 1, n), np.linspace(0, h - 1, n))
+    xy = cam.undistort(np.column_stack([u.ravel(), v.ravel()]))
+    return np.concatenate([np.column_stack([xy * z, np.full(len(xy), z)]) for z in np.linspace(z0, z1, 5)])
+
+
+@pytest.fixture(scope="module")
+def calibrated(quick_capture: Path, tmp_path_factory) -> dict[str, Path]:
+    """camera.json, lasers.json and handeye.json of the quick capture, made by the CLI."""
+    out = tmp_path_factory.mktemp("calibration")
+    cam, las, he = out / "camera.json", out / "lasers.json", out / "handeye.json"
+    assert main(["calibrate-camera", str(quick_capture), "--out", str(cam), "--threads", "2"]) == 0
+    assert main(["calibrate-lasers", str(quick_capture), "--camera", str(cam), "--out", str(las),
+                 "--threads", "2"]) == 0
+    assert main(["calibrate-handeye", str(quick_capture), "--camera", str(cam), "--out", str(he),
+                 "--threads", "2"]) == 0
+    return {"camera": cam, "lasers": las, "handeye": he}
+
+
+def test_camera_against_truth(calibrated: dict[str, Path], quick_capture: Path) -> None:
+    """Every board view used; projections over the working volume match the true camera's."""
+    est = Camera.load(calibrated["camera"])
+    true = _true_camera(_truth(quick_capture))
+    Q = _volume(true)
+    d = est.project(Q) - true.project(Q)
+    assert np.sqrt(np.mean(np.sum(d**2, 1))) < 0.1
+    x = est.extra
+    assert x["view_set"] == "all" and all(v["used"] for v in x["views"])
+    assert x["n_views_used"] == len(x["views"]) == len(x["residuals"])
+    assert 0.002 < x["rms_px"] < 0.03
+    assert x["bias_correction"]["enabled"] and x["bias_correction"]["mean_shift_px"] > 0.01
+    first = x["views"][0]["image"]
+    assert np.asarray(x["residuals"][first]).shape == (165, 2)
+
+
+def test_lasers_against_truth(calibrated: dict[str, Path], quick_capture: Path) -> None:
+    """Both planes within a hundredth of a degree and a hundredth of a mm of the truth."""
+    planes = LaserPlanes.load(calibrated["lasers"])
+    truth = _truth(quick_capture)
+    for laser in ("A", "B"):
+        n_t = np.array(truth["lasers"][laser]["normal"])
+        d_t = truth["lasers"][laser]["d"]
+        p = planes[laser]
+        n, d = (p.normal, p.d) if p.normal @ n_t > 0 else (-p.normal, -p.d)
+        assert np.degrees(angle_between(n, n_t)) < 0.01
+        assert abs(d - d_t) < 0.01
+        assert p.extra["rms_mm"] < 0.01 and p.extra["n_used"] > 500
+        assert len(p.extra["poses"]) == 3 and all(q["n_used"] > 100 for q in p.extra["poses"])
+    raw = json.loads(calibrated["lasers"].read_text())
+    assert abs(raw["angle_AB_deg"] - planes.angle_deg()) < 1e-12
+    assert set(raw["intersection_line"]) == {"point", "direction"}
+
+
+def test_handeye_against_truth(calibrated: dict[str, Path], quick_capture: Path) -> None:
+    """The refined X carries working-volume points within a few hundredths of a mm of truth."""
+    he = HandEye.load(calibrated["handeye"])
+    truth = _truth(quick_capture)
+    X_t = np.array(truth["T_tool_cam"])
+    Q = _volume(_true_camera(truth))
+    err = np.sqrt(np.mean(np.sum((transform_points(he.T_tool_cam, Q) - transform_points(X_t, Q)) ** 2, 1)))
+    assert err < 0.03
+    assert he.method == "refined"
+    assert set(he.extra["methods"]) == {"chou_kamel", "tsai", "park", "horaud", "andreff", "daniilidis",
+                                        "reprojection", "refined"}
+    assert he.extra["pairs"]["used"] + he.extra["pairs"]["rejected"] == he.extra["pairs"]["total"]
+    # one board frame for all views: the implied boards agree to the arm's precision
+    assert he.extra["methods"]["refined"]["board_consistency_mm"] < 0.05
+
+
+def _linked_copy(src: Path, dst: Path) -> Path:
+    """A capture whose files are symbolic links to ``src``'s, so single files can be replaced."""
+    for p in sorted(src.rglob("*")):
+        q = dst / p.relative_to(src)
+        if p.is_dir():
+            q.mkdir(parents=True, exist_ok=True)
+        else:
+            q.parent.mkdir(parents=True, exist_ok=True)
+            q.symlink_to(p)
+    return dst
+
+
+def _replace(path: Path, img: np.ndarray) -> None:
+    path.unlink()
+    write_png(path, img)
+
+
+def test_view_without_board_is_skipped_and_listed(quick_capture: Path, tmp_path: Path) -> None:
+    """A camera view without the board: skipped, listed with its reason; calibration goes on."""
+    cap = _linked_copy(quick_capture, tmp_path / "capture")
+    view = sorted((cap / "calibration" / "camera").glob("*.png"))[2]
+    _replace(view, np.full(read_image(view).shape, 90, np.uint8))
+    out = tmp_path / "camera.json"
+    assert main(["calibrate-camera", str(cap), "--out", str(out), "--views", "camera"]) == 0
+    views = {v["image"]: v for v in Camera.load(out).extra["views"]}
+    v = views[f"calibration/camera/{view.name}"]
+    assert v["used"] is False
+    assert v["reason"] == "board not found: no 15x11 symmetric grid of dark circles detected"
+    assert sum(v["used"] for v in views.values()) == len(views) - 1
+
+
+def test_too_few_views_is_an_error_naming_each_view(quick_capture: Path, tmp_path: Path, capsys) -> None:
+    """Fewer usable views than --min-views: exit 2, every view named with its state."""
+    out = tmp_path / "camera.json"
+    assert main(["calibrate-camera", str(quick_capture), "--out", str(out), "--views", "camera",
+                 "--min-views", "40"]) == 2
+    err = capsys.readouterr().err
+    assert "camera calibration needs at least 40 usable views, got" in err
+    assert "  - calibration/camera/view_00.png: used" in err
+    assert not out.exists()
+
+
+def test_laser_image_without_stripe_names_the_file(quick_capture: Path, tmp_path: Path, capsys) -> None:
+    """A laser image with the laser off: exit 2 and an error naming that image."""
+    cap = _linked_copy(quick_capture, tmp_path / "capture")
+    target = cap / "calibration" / "laser_B" / "pose_01_laser.png"
+    board = read_image(cap / "calibration" / "laser_B" / "pose_01_board.png")
+    _replace(target, (board // 20).astype(np.uint8))  # the lasers-off scene at the laser exposure
+    out = tmp_path / "lasers.json"
+    cam = tmp_path / "camera.json"
+    _true_camera(_truth(quick_capture)).save(cam)
+    assert main(["calibrate-lasers", str(cap), "--camera", str(cam), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "calibration/laser_B/pose_01_laser.png: no laser stripe on the board" in err
+    assert not out.exists()

@@ -1,0 +1,140 @@
+"""Laser-plane calibration: stripe points on the board plane, robust plane fit, errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from crossline.board import Board
+from crossline.calibrate.lasers import ambient_model, edge_clearance, robust_plane, stripe_points
+from crossline.calibrate.synthetic import look_at, render_view, sample_rays
+from crossline.camera import Camera
+from crossline.errors import CalibrationError
+from crossline.geometry import angle_between, invert_transform
+
+CAM = Camera(np.array([[2400.0, 0, 512.0], [0, 2400.0, 384.0], [0, 0, 1]]),
+             np.array([-0.1, 0.15, 2e-4, -1e-4, 0.0]), (1024, 768))
+BOARD = Board("symmetric", 9, 7, 4.0, 2.0, "dark")
+# a plane crossing the optical axis at ~120 mm, tilted like the paper's laser A
+N_TRUE = np.array([-0.66, -0.55, 0.51]) / np.linalg.norm([-0.66, -0.55, 0.51])
+D_TRUE = -float(N_TRUE @ np.array([0.0, 0.0, 120.0]))
+
+
+@pytest.fixture(scope="module")
+def rays() -> np.ndarray:
+    """Sub-pixel rays of CAM, computed once."""
+    return sample_rays(CAM, 3)
+
+
+def _pose(distance: float, tilt_deg: float, az: float) -> np.ndarray:
+    ex, ey = BOARD.extent()
+    c = np.array([ex / 2, ey / 2, 0.0])
+    t = np.radians(tilt_deg)
+    eye = c + distance * np.array([np.sin(t) * np.cos(az), np.sin(t) * np.sin(az), -np.cos(t)])
+    return invert_transform(look_at(eye, c))
+
+
+def _pair(T: np.ndarray, rays: np.ndarray, seed: int, laser: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Lasers-off image (board exposure) and laser image (10x shorter exposure, stripe on)."""
+    rng = np.random.default_rng(seed)
+    board = render_view(CAM, BOARD, T, rays=rays, light=200, dark=25, table=60, noise=1.0, rng=rng)
+    kw = dict(laser_plane=(N_TRUE, D_TRUE), laser_sigma_mm=0.05, laser_peak=170.0) if laser else {}
+    on = render_view(CAM, BOARD, T, rays=rays, light=20, dark=2.5, table=6, ambient=3.0, noise=1.0,
+                     rng=rng, **kw)
+    return board, on
+
+
+@pytest.mark.slow
+def test_plane_from_rendered_poses(rays: np.ndarray) -> None:
+    """Three board poses: stripe points on the true plane; the fitted plane matches it.
+
+    The stripe crosses dark circles; centres are kept only clear of circle rims.
+    """
+    pts = []
+    for k, (z, tilt, az) in enumerate([(105.0, 15.0, 0.3), (120.0, 25.0, 2.0), (135.0, 10.0, 4.0)]):
+        b, on = _pair(_pose(z, tilt, az), rays, k)
+        s = stripe_points(CAM, BOARD, b, on, name=f"laser_A/pose_{k:02d}_laser.png")
+        r = s.points @ N_TRUE + D_TRUE
+        assert len(s.points) > 100
+        assert np.sqrt(np.mean(r**2)) < 0.003  # mm; a pixel is ~0.05 mm here
+        assert abs(np.mean(r)) < 0.001
+        pts.append(s.points)
+    n, d, inliers = robust_plane(np.concatenate(pts))
+    if n @ N_TRUE < 0:
+        n, d = -n, -d
+    assert np.degrees(angle_between(n, N_TRUE)) < 0.005
+    assert abs(d - D_TRUE) < 0.002
+    assert inliers.mean() > 0.95
+
+
+def test_no_stripe_on_the_board_names_the_file(rays: np.ndarray) -> None:
+    """A laser image without a stripe is an error that names the laser image."""
+    b, off = _pair(_pose(110.0, 15.0, 0.5), rays, 3, laser=False)
+    with pytest.raises(CalibrationError) as exc:
+        stripe_points(CAM, BOARD, b, off, name="calibration/laser_B/pose_01_laser.png")
+    assert str(exc.value).startswith("calibration/laser_B/pose_01_laser.png: no laser stripe on the board")
+
+
+def test_stripe_beside_the_board_is_no_stripe_on_the_board(rays: np.ndarray) -> None:
+    """A stripe that misses the board (on the table only) is the same named error."""
+    T = _pose(150.0, 0.0, 0.0)
+    b = render_view(CAM, BOARD, T, rays=rays, noise=1.0)
+    # a plane parallel to the optical axis at x = -28 mm: the image's left edge, the table
+    n = np.array([1.0, 0.0, 0.0])
+    on = render_view(CAM, BOARD, T, rays=rays, light=20, dark=2.5, table=20, noise=1.0,
+                     laser_plane=(n, 28.0), laser_sigma_mm=0.05, laser_peak=170.0)
+    assert (on.astype(int) - b // 10).max() > 100  # the stripe is in the image
+    with pytest.raises(CalibrationError, match=r"^x\.png: no laser stripe on the board: 0 stripe centres"):
+        stripe_points(CAM, BOARD, b, on, name="x.png")
+
+
+def test_board_not_found_in_the_lasers_off_image() -> None:
+    """No board in the lasers-off image: the error names the file and says why."""
+    blank = np.full((768, 1024), 100, np.uint8)
+    with pytest.raises(CalibrationError, match=r"^p\.png: board not found: .* lasers-off image"):
+        stripe_points(CAM, BOARD, blank, blank, name="p.png")
+
+
+def test_edge_clearance() -> None:
+    """Distance to the nearest albedo edge: circle rims, square edges, off the board < 0."""
+    b = Board("symmetric", 5, 4, 4.0, 2.0)
+    xy = np.array([[0.0, 0.0], [2.0, 0.0], [1.0, 0.0], [2.0, 2.0], [-3.0, 0.0], [8.0, 6.5]])
+    c = edge_clearance(b, xy)
+    assert np.allclose(c[:4], [1.0, 1.0, 0.0, np.hypot(2, 2) - 1.0])
+    assert c[4] < 0  # beyond the board's margin (one diameter past the outer centres)
+    assert np.isclose(c[5], min(abs(np.hypot(0.0, 1.5) - 1.0), abs(np.hypot(0.0, 2.5) - 1.0)))
+    a = Board("asymmetric", 3, 4, 4.0, 3.0)
+    # asymmetric layout: circle (r=1, c=0) is at (4, 4)
+    assert np.isclose(edge_clearance(a, np.array([[4.0, 4.0]]))[0], 1.5)
+    ch = Board("chessboard", 4, 3, 5.0)
+    assert np.allclose(edge_clearance(ch, np.array([[2.5, 2.5], [1.0, 2.5], [-4.0, 7.5]])), [2.5, 1.0, 1.0])
+
+
+def test_robust_plane_ignores_outliers() -> None:
+    """Exact plane through 90 % inliers with 10 % gross outliers; trimmed fit is exact."""
+    rng = np.random.default_rng(0)
+    u = rng.uniform(-20, 20, (500, 2))
+    e1 = np.cross(N_TRUE, [1.0, 0, 0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(N_TRUE, e1)
+    p = -D_TRUE * N_TRUE + u[:, :1] * e1 + u[:, 1:] * e2
+    noisy = p + rng.normal(0, 0.002, (500, 1)) * N_TRUE
+    noisy[:50] += rng.uniform(0.5, 3.0, (50, 1)) * N_TRUE
+    n, d, inl = robust_plane(noisy)
+    if n @ N_TRUE < 0:
+        n, d = -n, -d
+    assert not inl[:50].any() and inl[50:].mean() > 0.97
+    assert np.degrees(angle_between(n, N_TRUE)) < 0.003
+    assert abs(d - D_TRUE) < 0.001
+    n, d, inl = robust_plane(p)
+    assert abs(abs(n @ N_TRUE) - 1) < 1e-12 and inl.all()
+
+
+def test_ambient_model() -> None:
+    """laser = a board + b is recovered despite a bright stripe."""
+    rng = np.random.default_rng(1)
+    board = rng.integers(20, 220, (200, 300)).astype(np.uint8)
+    laser = 0.1 * board.astype(float) + 3.0 + rng.normal(0, 0.3, board.shape)
+    laser[100:104] = 250
+    a, b = ambient_model(board, np.clip(np.round(laser), 0, 255).astype(np.uint8))
+    assert abs(a - 0.1) < 0.002 and abs(b - 3.0) < 0.2
