@@ -1,0 +1,509 @@
+"""Scan stages: accuracy against the simulator's truth, speed, and memory.
+
+    python benchmarks/bench_scan.py                 # paper + compact presets, 300-frame plate scans
+    python benchmarks/bench_scan.py --frames 120 --presets paper --mem-frames 300,1000
+
+Prints the figures and writes benchmarks/results/scan.json and scan.txt. For each preset it
+renders (once, cached under benchmarks/.cache/) a capture with the plate scan, then
+
+- centre error of each extractor against the true centreline (truth/<scan>_centrelines.parquet),
+  RMS and 99th percentile, away from the crossing and in the crossing band (a centre whose
+  column has the other laser's true stripe within CROSSING_PX px in that frame);
+- labels: AB-frame centres given the wrong laser, dropped centres by reason, as counts and
+  rates; points per frame against a single-line rig on the same scan (the paper: 1.33x);
+- with the TRUE calibration (truth.json), RMS distance of the triangulated points to the true
+  plate, with the reported arm poses and with the true ones (the latter isolates extraction);
+- speeds (medians of several runs): PNG decoding alone (OpenCV, the fast decoder), the
+  grey-centre kernel (numba, numpy), Steger, a naive per-column Python loop, and the scan
+  stages end to end (PNG on disk -> points) with 2 threads;
+- peak memory (RSS) of the scan stages on long scans made by cycling the frames, to show it
+  does not grow with the number of frames.
+
+If the simulator cannot render (it is being written), synthetic 2658x800 frames of two crossed
+Gaussian stripes stand in for speed and memory, and accuracy is skipped (said in the output).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from crossline.camera import Camera  # noqa: E402
+from crossline.capture import open_capture  # noqa: E402
+from crossline.framestream import decode_png, fast_decoder_available  # noqa: E402
+from crossline.laser import LaserPlanes  # noqa: E402
+from crossline.stripes import grey_centre, run_extract_stripes, steger  # noqa: E402
+from crossline.triangulate import run_triangulate, to_base  # noqa: E402
+
+CACHE = REPO / "benchmarks" / ".cache"
+RESULTS = REPO / "benchmarks" / "results"
+CROSSING_PX = 15.0
+SCAN = "plate"
+
+
+# ----------------------------------------------------------------------------- data
+
+
+def render(preset: str, frames: int) -> Path | None:
+    """A capture of ``preset`` with its plate scan of ``frames`` frames (cached), or None."""
+    out = CACHE / f"{preset}-{SCAN}-{frames}"
+    if (out / "rig.yaml").is_file() and (out / "truth.json").is_file():
+        return out
+    try:
+        from crossline.sim import simulate
+
+        shutil.rmtree(out, ignore_errors=True)
+        simulate(out, preset=preset, frames=frames, scans=[SCAN], force=True, threads=2,
+                 progress=False)
+        return out
+    except Exception as exc:  # the simulator is optional here: say why and go on
+        print(f"  [{preset}] simulator unavailable: {type(exc).__name__}: {exc}")
+        shutil.rmtree(out, ignore_errors=True)
+        return None
+
+
+def synthetic_capture(frames: int, seed: int = 0) -> Path:
+    """A 2658x800 capture of two crossed Gaussian stripes moving frame to frame (no truth)."""
+    import yaml
+
+    from crossline.atomic import write_json
+    from crossline.imageio import write_png
+
+    out = CACHE / f"synthetic-{frames}"
+    if (out / "rig.yaml").is_file():
+        return out
+    shutil.rmtree(out, ignore_errors=True)
+    rng = np.random.default_rng(seed)
+    W, H = 2658, 800
+    rig = {"format": "crossline-capture/1", "sensor": {"width": 3072, "height": 2048, "bit_depth": 8},
+           "scan_window": {"x": 207, "y": 624, "width": W, "height": H}, "frame_rate": 80,
+           "board": {"pattern": "symmetric", "cols": 15, "rows": 11, "spacing": 3.75,
+                     "diameter": 1.875, "circles": "dark"},
+           "scans": {SCAN: {"artefact": "plane"}}}
+    out.mkdir(parents=True)
+    (out / "rig.yaml").write_text(yaml.safe_dump(rig, sort_keys=False))
+    z = np.zeros((4, 4), np.uint8)
+    for sub, names in (("camera", ["v.png"]), ("laser_A", ["a_board.png", "a_laser.png", "b_board.png",
+                                                          "b_laser.png"]),
+                       ("laser_B", ["a_board.png", "a_laser.png", "b_board.png", "b_laser.png"]),
+                       ("handeye", ["p.png"])):
+        for n in names:
+            write_png(out / "calibration" / sub / n, z)
+    (out / "calibration" / "handeye" / "poses.csv").write_text(
+        "image,x,y,z,qw,qx,qy,qz\np.png,0,0,0,1,0,0,0\n")
+    fdir = out / "scans" / SCAN / "frames"
+    fdir.mkdir(parents=True)
+    u = np.arange(W, dtype=float)[None, :]
+    v = np.arange(H, dtype=float)[:, None]
+    rows = ["frame,time_s,lasers,x,y,z,qw,qx,qy,qz"]
+    for k in range(frames):
+        st = ("A", "B", "AB")[k % 3]
+        img = np.full((H, W), 6.0)
+        for laser, slope in (("A", 0.28), ("B", -0.26)):
+            if laser in st:
+                c = 400 + 0.5 * k + slope * (u - W / 2) + 3 * np.sin(u / 300 + k / 20)
+                img += 170 * np.exp(-0.5 * ((v - c) / (1.6 * np.sqrt(1 + slope**2))) ** 2)
+        img += rng.normal(0, 1, img.shape) * np.sqrt(img * 0.3 + 1)
+        write_png(fdir / f"{k:06d}.png", np.clip(np.round(img), 0, 255).astype(np.uint8))
+        rows.append(f"{k},{k / 80:.6f},{st},0,{0.1 * k:.4f},150,1,0,0,0")
+    (out / "scans" / SCAN / "frames.csv").write_text("\n".join(rows) + "\n")
+    cam = Camera(np.array([[5000.0, 0, 1536], [0, 5000.0, 1024], [0, 0, 1]]),
+                 np.array([-0.05, 0.1, 0, 0, 0]), (3072, 2048))
+    cal = out / "cal"
+    cam.save(cal / "camera.json")
+    LaserPlanes.from_dict({"A": {"normal": [0, 0.8, -0.6], "d": 90.0},
+                           "B": {"normal": [0.8, 0, -0.6], "d": 90.0}}).save(cal / "lasers.json")
+    write_json(cal / "handeye.json", {"T_tool_cam": np.eye(4).tolist()})
+    return out
+
+
+def true_calibration(capture: Path, dest: Path) -> tuple[Path, Path, Path]:
+    """camera.json, lasers.json, handeye.json written from truth.json (benchmarks only)."""
+    from crossline.atomic import write_json
+
+    if (capture / "cal" / "camera.json").is_file():  # synthetic stand-in
+        c = capture / "cal"
+        return c / "camera.json", c / "lasers.json", c / "handeye.json"
+    truth = json.loads((capture / "truth.json").read_text())
+    rig = open_capture(capture).rig
+    dest.mkdir(parents=True, exist_ok=True)
+    Camera(np.array(truth["camera"]["K"]), np.array(truth["camera"]["dist"]),
+           (rig.sensor.width, rig.sensor.height)).save(dest / "camera.json")
+    LaserPlanes.from_dict(truth["lasers"]).save(dest / "lasers.json")
+    write_json(dest / "handeye.json", {"T_tool_cam": truth["T_tool_cam"], "method": "truth"})
+    return dest / "camera.json", dest / "lasers.json", dest / "handeye.json"
+
+
+# ----------------------------------------------------------------------------- accuracy
+
+
+def truth_table(capture: Path) -> tuple[dict, pd.DataFrame]:
+    truth = json.loads((capture / "truth.json").read_text())
+    t = pd.read_parquet(capture / truth["scans"][SCAN]["centrelines"])
+    t = t[t["visible"]] if "visible" in t else t
+    return truth, t[["frame", "laser", "u", "v"]]
+
+
+def score_centres(stripes: pd.DataFrame, tl: pd.DataFrame) -> dict:
+    """Centre error vs the true centreline, away from and in the crossing band."""
+    # the true row of each lit laser at the centre's column
+    s = stripes[["frame", "lasers", "u", "v", "flags"]].copy()
+    # the truth is sampled at integer columns; Steger's centres sit at fractional columns, so
+    # the true row is interpolated linearly between the two columns around each centre
+    s["u0"] = np.floor(s["u"]).astype(np.int64)
+    s["u1"] = s["u0"] + 1
+    frac = (s["u"] - s["u0"]).to_numpy()
+    piv = tl.groupby(["frame", "u", "laser"])["v"].first().unstack("laser")
+    piv = piv.reindex(columns=["A", "B"])
+    m0 = s.join(piv, on=["frame", "u0"])
+    m1 = s.join(piv, on=["frame", "u1"])
+    m = m0
+    lit_a = m["lasers"].str.contains("A").to_numpy()
+    lit_b = m["lasers"].str.contains("B").to_numpy()
+    va = np.where(frac > 0, (1 - frac) * m0["A"].to_numpy() + frac * m1["A"].to_numpy(),
+                  m0["A"].to_numpy())
+    vb = np.where(frac > 0, (1 - frac) * m0["B"].to_numpy() + frac * m1["B"].to_numpy(),
+                  m0["B"].to_numpy())
+    v = m["v"].to_numpy()
+    da = np.where(lit_a, np.abs(v - va), np.inf)
+    db = np.where(lit_b, np.abs(v - vb), np.inf)
+    e = np.minimum(da, db)
+    e = np.where(np.isfinite(e), e, np.nan)
+    near = np.abs(va - vb) < CROSSING_PX  # both true stripes close in this column
+    flagged = (m["flags"].to_numpy() & 1) != 0  # merged
+    has = np.isfinite(e) & (e < 5.0)  # centres on a true stripe (not reflections or noise)
+    out = {"centres": len(s), "scored": int(has.sum()), "off_truth": int((~has).sum())}
+    for name, sel in (("away", has & ~near & ~flagged), ("crossing", has & near & ~flagged)):
+        x = e[sel]
+        out[name] = {"n": int(x.size),
+                     "rms_px": float(np.sqrt(np.mean(x**2))) if x.size else None,
+                     "p99_px": float(np.percentile(x, 99)) if x.size else None,
+                     "mean_abs_px": float(np.mean(x)) if x.size else None}
+    return out
+
+
+def score_labels(points: pd.DataFrame, tl: pd.DataFrame, meta: dict) -> dict:
+    """Wrong labels among AB-frame points; dropped counts; points per frame vs a single line."""
+    p = points[points["lasers"] == "AB"][["frame", "laser", "u", "v"]].copy()
+    p["ui"] = np.round(p["u"]).astype(np.int64)
+    piv = tl.groupby(["frame", "u", "laser"])["v"].first().unstack("laser").reindex(columns=["A", "B"])
+    m = p.join(piv, on=["frame", "ui"])
+    da = np.abs(m["v"] - m["A"]).to_numpy()
+    db = np.abs(m["v"] - m["B"]).to_numpy()
+    true = np.where(np.nan_to_num(da, nan=np.inf) < np.nan_to_num(db, nan=np.inf), "A", "B")
+    known = np.isfinite(np.fmin(da, db)) & (np.fmin(da, db) < 3.0)
+    near = np.abs(m["A"] - m["B"]).to_numpy() < CROSSING_PX
+    wrong = known & (m["laser"].to_numpy() != true)
+    c = meta["counts"]
+    ab_in = c["centres_by_state"]["AB"]
+    single = (c["centres_by_state"]["A"] + c["centres_by_state"]["B"]) / max(
+        c["frames"]["A"] + c["frames"]["B"], 1)
+    return {
+        "ab_points": len(p), "ab_points_known": int(known.sum()),
+        "wrong_labels": int(wrong.sum()), "wrong_labels_away": int((wrong & ~near).sum()),
+        "wrong_labels_crossing": int((wrong & near).sum()),
+        "wrong_rate": float(wrong.sum() / max(known.sum(), 1)),
+        "dropped": c["dropped"], "dropped_total": int(sum(c["dropped"].values())),
+        "dropped_rate_of_ab_centres": float(sum(c["dropped"].values()) / max(ab_in, 1)),
+        "AB_frames_without_reference": c["AB_frames_without_reference"],
+        "points_per_frame": meta["points_per_frame"],
+        "single_line_points_per_frame": single,
+        "ratio_vs_single_line": meta["points_per_frame"] / max(single, 1e-9),
+    }
+
+
+def score_surface(capture: Path, points: pd.DataFrame, T_tool_cam: np.ndarray) -> dict:
+    truth = json.loads((capture / "truth.json").read_text())
+    plane = np.array(truth["scans"][SCAN]["plane_base"])
+    n, d = plane[:3] / np.linalg.norm(plane[:3]), plane[3] / np.linalg.norm(plane[:3])
+    out = {}
+    rep = points[["x", "y", "z"]].to_numpy() @ n + d
+    out["reported_poses"] = {"rms_mm": float(np.sqrt(np.mean(rep**2))),
+                             "p99_mm": float(np.percentile(np.abs(rep), 99))}
+    poses_file = truth["scans"][SCAN].get("poses")
+    if poses_file:
+        from crossline.geometry import transform_from_pose
+
+        tp = pd.read_parquet(capture / poses_file).set_index("frame")
+        sel = tp.loc[points["frame"].to_numpy()]
+        T = transform_from_pose(sel[["x", "y", "z"]].to_numpy(), sel[["qw", "qx", "qy", "qz"]].to_numpy())
+        pb = to_base(points[["x_cam", "y_cam", "z_cam"]].to_numpy(), T, T_tool_cam)
+        tru = pb @ n + d
+        out["true_poses"] = {"rms_mm": float(np.sqrt(np.mean(tru**2))),
+                             "p99_mm": float(np.percentile(np.abs(tru), 99))}
+    return out
+
+
+# ----------------------------------------------------------------------------- speed
+
+
+def median_time(fn, repeat: int) -> float:
+    ts = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return float(np.median(ts))
+
+
+def naive_grey_centre(img: np.ndarray, threshold: float = 0.15, pad: int = 2) -> list:
+    """The grey-centre as a per-column, per-pixel Python loop (for the speed ratio only)."""
+    thr = threshold * 255.0
+    H, W = img.shape
+    out = []
+    for c in range(W):
+        col = img[:, c].tolist()
+        r = 0
+        while r < H:
+            if col[r] > thr:
+                s = r
+                while r < H and col[r] > thr:
+                    r += 1
+                e = r - 1
+                if e - s + 1 >= 2:
+                    lo, hi = max(s - pad, 0), min(e + pad, H - 1)
+                    bl = (col[max(lo - 1, 0)] + col[max(lo - 2, 0)]) / 2
+                    bh = (col[min(hi + 1, H - 1)] + col[min(hi + 2, H - 1)]) / 2
+                    bg = min(bl, bh)
+                    sw = swr = 0.0
+                    for rr in range(lo, hi + 1):
+                        w = col[rr] - bg
+                        if w > 0:
+                            sw += w
+                            swr += w * rr
+                    if sw > 0:
+                        out.append((c, swr / sw))
+            else:
+                r += 1
+    return out
+
+
+def speeds(capture: Path, cal: tuple[Path, Path, Path], repeat: int, work: Path) -> dict:
+    sc = open_capture(capture).scans[SCAN]
+    paths = sc.frame_paths[:60]
+    blobs = [p.read_bytes() for p in paths]
+    imgs = [decode_png(b, p, "opencv") for b, p in zip(blobs, paths, strict=True)]
+    for b, p, im in zip(blobs[:5], paths[:5], imgs[:5], strict=True):
+        assert np.array_equal(decode_png(b, p, "auto"), im)
+    n = len(blobs)
+    res: dict = {"frames_timed": n, "frame_shape": list(imgs[0].shape),
+                 "fast_decoder": fast_decoder_available()}
+
+    def per_frame_ms(fn, items, rep=repeat):
+        fn(items[0])
+        return 1e3 * median_time(lambda: [fn(x) for x in items], rep) / len(items)
+
+    res["decode_opencv_ms"] = per_frame_ms(lambda b: decode_png(b, "x", "opencv"), blobs)
+    if fast_decoder_available():
+        res["decode_fast_ms"] = per_frame_ms(lambda b: decode_png(b, "x", "fast"), blobs)
+    res["grey_centre_numba_ms"] = per_frame_ms(lambda im: grey_centre(im, backend="numba"), imgs)
+    res["grey_centre_numpy_ms"] = per_frame_ms(lambda im: grey_centre(im, backend="numpy"), imgs)
+    res["steger_ms"] = per_frame_ms(lambda im: steger(im, sigma=2.0), imgs)
+    res["naive_python_ms"] = 1e3 * median_time(lambda: naive_grey_centre(imgs[0]), 1)
+    res["naive_over_numba"] = res["naive_python_ms"] / res["grey_centre_numba_ms"]
+    res["naive_over_numpy"] = res["naive_python_ms"] / res["grey_centre_numpy_ms"]
+    for k in ("grey_centre_numba", "grey_centre_numpy", "steger"):
+        res[k + "_fps_per_core"] = 1e3 / res[k + "_ms"]
+    # end to end with 2 threads: extraction (streamed, 2 threads) then triangulation
+    nfr = len(sc.frames)
+    for ex in ("grey_centre", "steger"):
+        ext, tri = [], []
+        for _ in range(max(2, repeat // 2)):
+            st, pt = work / f"e2e-{ex}.parquet", work / f"e2e-{ex}-points.parquet"
+            t0 = time.perf_counter()
+            run_extract_stripes(capture, SCAN, st, extractor=ex, threads=2)
+            t1 = time.perf_counter()
+            run_triangulate(capture, SCAN, st, *cal, pt)
+            t2 = time.perf_counter()
+            ext.append(t1 - t0)
+            tri.append(t2 - t1)
+        e, t = float(np.median(ext)), float(np.median(tri))
+        res[f"end_to_end_{ex}"] = {"frames": nfr, "extract_s": e, "triangulate_s": t,
+                                   "frames_per_s": nfr / (e + t), "extract_frames_per_s": nfr / e}
+    return res
+
+
+# ----------------------------------------------------------------------------- memory
+
+
+def cycled_capture(capture: Path, n: int) -> Path:
+    """A capture whose plate scan has ``n`` frames, hard links cycling the original frames."""
+    import yaml
+
+    out = CACHE / f"{capture.name}-cycled-{n}"
+    if (out / "scans" / SCAN / "frames.csv").is_file():
+        return out
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    rig = yaml.safe_load((capture / "rig.yaml").read_text())
+    rig["scans"] = {SCAN: rig["scans"][SCAN]}
+    (out / "rig.yaml").write_text(yaml.safe_dump(rig, sort_keys=False))
+    os.symlink(capture / "calibration", out / "calibration")
+    src = pd.read_csv(capture / "scans" / SCAN / "frames.csv", dtype=str)
+    period = len(src) - len(src) % 3 or len(src)  # keep the A, B, AB phase across the seam
+    fdir = out / "scans" / SCAN / "frames"
+    fdir.mkdir(parents=True)
+    rows = []
+    for k in range(n):
+        r = src.iloc[k % period].copy()
+        os.link(capture / "scans" / SCAN / "frames" / f"{int(r['frame']):06d}.png", fdir / f"{k:06d}.png")
+        r["frame"] = str(k)
+        r["time_s"] = f"{k / 80:.6f}"
+        rows.append(r)
+    pd.DataFrame(rows).to_csv(out / "scans" / SCAN / "frames.csv", index=False)
+    return out
+
+
+def peak_rss(capture: Path, cal: tuple[Path, Path, Path], work: Path) -> dict:
+    code = f"""
+import resource, sys, time
+sys.path.insert(0, {str(REPO)!r})
+from crossline.stripes import run_extract_stripes
+from crossline.triangulate import run_triangulate
+t0 = time.perf_counter()
+run_extract_stripes({str(capture)!r}, {SCAN!r}, {str(work / 'm.parquet')!r}, threads=2)
+a = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+t1 = time.perf_counter()
+run_triangulate({str(capture)!r}, {SCAN!r}, {str(work / 'm.parquet')!r}, {str(cal[0])!r}, {str(cal[1])!r},
+                {str(cal[2])!r}, {str(work / 'mp.parquet')!r})
+b = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+print(a, b, t1 - t0, time.perf_counter() - t1)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    a, b, te, tt = out.stdout.split()
+    return {"peak_rss_extract_mb": int(a) / 1024, "peak_rss_after_triangulate_mb": int(b) / 1024,
+            "extract_s": float(te), "triangulate_s": float(tt)}
+
+
+# ----------------------------------------------------------------------------- main
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--presets", default="paper,compact",
+                    help="simulator presets to score ('' = none: speed and memory on synthetic frames)")
+    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--mem-frames", default="500,2000")
+    ap.add_argument("--skip-memory", action="store_true")
+    a = ap.parse_args(argv)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    work = CACHE / "work"
+    work.mkdir(parents=True, exist_ok=True)
+    report: dict = {"crossing_band_px": CROSSING_PX, "presets": {}, "machine": {
+        "cpus": os.cpu_count(), "python": sys.version.split()[0]}}
+    lines: list[str] = []
+
+    def say(s: str = "") -> None:
+        print(s, flush=True)
+        lines.append(s)
+
+    speed_capture, speed_cal = None, None
+    for preset in [x for x in a.presets.split(",") if x]:
+        say(f"== preset {preset}")
+        cap = render(preset, a.frames)
+        if cap is None:
+            report["presets"][preset] = {"rendered": False}
+            continue
+        cal = true_calibration(cap, work / f"cal-{preset}")
+        truth, tl = truth_table(cap)
+        T_tool_cam = np.array(truth["T_tool_cam"])
+        entry: dict = {"rendered": True, "frames": a.frames, "extractors": {}}
+        for ex in ("grey_centre", "steger"):
+            st, pt = work / f"{preset}-{ex}.parquet", work / f"{preset}-{ex}-points.parquet"
+            run_extract_stripes(cap, SCAN, st, extractor=ex, threads=2)
+            meta = run_triangulate(cap, SCAN, st, *cal, pt)
+            s, p = pd.read_parquet(st), pd.read_parquet(pt)
+            r = {"centres": score_centres(s, tl), "centres_used": score_centres(p, tl),
+                 "labels": score_labels(p, tl, meta),
+                 "surface": score_surface(cap, p, T_tool_cam)}
+            # the same with the centre line smoothed along the stripe over 9 columns
+            ps = work / f"{preset}-{ex}-smooth9.parquet"
+            run_triangulate(cap, SCAN, st, *cal, ps, smooth_px=9)
+            r["centres_smooth9"] = score_centres(pd.read_parquet(ps), tl)
+            # the paper's rule (latest frame, nearest wins) on the same centres, for comparison
+            meta0 = run_triangulate(cap, SCAN, st, *cal, work / f"{preset}-{ex}-paper.parquet",
+                                    ambiguity_px=0.0, predict=False)
+            r["labels_paper_rule"] = score_labels(
+                pd.read_parquet(work / f"{preset}-{ex}-paper.parquet"), tl, meta0)
+            entry["extractors"][ex] = r
+            c, lb, sf = r["centres"], r["labels"], r["surface"]
+            say(f"  {ex:12s} centre error away: RMS {c['away']['rms_px']:.4f} px, p99 "
+                f"{c['away']['p99_px']:.4f} px (n={c['away']['n']}); crossing band: RMS "
+                f"{c['crossing']['rms_px'] or float('nan'):.4f} px, p99 "
+                f"{c['crossing']['p99_px'] or float('nan'):.4f} px (n={c['crossing']['n']})")
+            for tag, what in (("centres_used", "after end trimming"),
+                              ("centres_smooth9", "trimmed + smoothed over 9 columns")):
+                c = r[tag]
+                say(f"  {'':12s} {what}: "
+                    f"away RMS {c['away']['rms_px']:.4f} px, p99 {c['away']['p99_px']:.4f} px "
+                    f"(n={c['away']['n']})")
+            for tag, L in (("ours", lb), ("paper rule", r["labels_paper_rule"])):
+                say(f"  {'':12s} labels ({tag}): wrong {L['wrong_labels']} of {L['ab_points_known']} "
+                    f"AB points "
+                    f"({100 * L['wrong_rate']:.3f} %), away from crossing {L['wrong_labels_away']}; "
+                    f"dropped {L['dropped_total']} ({100 * L['dropped_rate_of_ab_centres']:.2f} % of AB "
+                    f"centres) {L['dropped']}; points/frame {L['points_per_frame']:.1f} = "
+                    f"{L['ratio_vs_single_line']:.3f}x single line")
+            sp = sf.get("true_poses", sf["reported_poses"])
+            say(f"  {'':12s} distance to true plate (TRUE calibration): RMS "
+                f"{sf['reported_poses']['rms_mm']:.4f} mm with reported poses, "
+                f"{sp['rms_mm']:.4f} mm with true poses")
+        report["presets"][preset] = entry
+        if speed_capture is None:
+            speed_capture, speed_cal = cap, cal
+    if speed_capture is None:
+        say("== no simulator capture: speed and memory on synthetic 2658x800 frames (no truth)")
+        speed_capture = synthetic_capture(a.frames)
+        speed_cal = true_calibration(speed_capture, work / "cal-synthetic")
+        report["speed_data"] = "synthetic"
+    else:
+        report["speed_data"] = speed_capture.name
+    say(f"== speed on {speed_capture.name} (medians of {a.repeat} runs)")
+    sp = speeds(speed_capture, speed_cal, a.repeat, work)
+    report["speed"] = sp
+    say(f"  decode alone: OpenCV {sp['decode_opencv_ms']:.2f} ms/frame"
+        + (f", fast (libdeflate + numba) {sp['decode_fast_ms']:.2f} ms/frame"
+           if "decode_fast_ms" in sp else ""))
+    say(f"  grey-centre kernel: numba {sp['grey_centre_numba_ms']:.3f} ms "
+        f"({sp['grey_centre_numba_fps_per_core']:.0f} frames/s/core), numpy "
+        f"{sp['grey_centre_numpy_ms']:.3f} ms ({sp['grey_centre_numpy_fps_per_core']:.0f})")
+    say(f"  Steger kernel: {sp['steger_ms']:.3f} ms ({sp['steger_fps_per_core']:.0f} frames/s/core)")
+    say(f"  naive per-column Python loop: {sp['naive_python_ms']:.0f} ms/frame = "
+        f"{sp['naive_over_numba']:.0f}x numba, {sp['naive_over_numpy']:.0f}x numpy")
+    for ex in ("grey_centre", "steger"):
+        e = sp[f"end_to_end_{ex}"]
+        say(f"  end to end {ex} (2 threads, {e['frames']} frames): {e['frames_per_s']:.0f} frames/s "
+            f"(extract {e['extract_s']:.2f} s = {e['extract_frames_per_s']:.0f} frames/s, triangulate "
+            f"{e['triangulate_s']:.2f} s)")
+    if not a.skip_memory:
+        say("== peak memory (RSS) of the scan stages, frames cycled")
+        report["memory"] = {}
+        for n in (int(x) for x in a.mem_frames.split(",")):
+            cc = cycled_capture(speed_capture, n)
+            m = peak_rss(cc, speed_cal, work)
+            report["memory"][str(n)] = m
+            say(f"  {n:5d} frames: extract peak {m['peak_rss_extract_mb']:.0f} MB, with triangulate "
+                f"{m['peak_rss_after_triangulate_mb']:.0f} MB ({m['extract_s']:.1f} s + "
+                f"{m['triangulate_s']:.1f} s)")
+    from crossline.atomic import write_json
+
+    write_json(RESULTS / "scan.json", report)
+    (RESULTS / "scan.txt").write_text("\n".join(lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,141 @@
+"""Stripe centre lines: link the centres of one laser in one frame column by column into
+traces, trim the ends of each trace, and optionally smooth along it.
+
+Why: where a stripe ends (the edge of a surface, a shadow, the end of the fan) its cross
+section is cut off and the centre of the remaining part is biased by up to a pixel or two;
+the first and last few columns of every trace are therefore not measurements. Along a trace,
+the true centre line of a smooth surface varies smoothly, while speckle makes the centres
+scatter from column to column: a Savitzky–Golay fit over a few columns (a local quadratic,
+so curvature is kept) trades lateral resolution for precision, which the user chooses.
+
+All functions take parallel arrays (one entry per centre) and return arrays.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.signal import savgol_coeffs
+
+__all__ = ["link_traces", "smooth_along", "trace_position"]
+
+
+def _keys(frame: np.ndarray, laser: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Integer column keys (frame, laser, column) and the integer column of each centre."""
+    col = np.rint(np.asarray(u, dtype=np.float64)).astype(np.int64)
+    lasers, lid = np.unique(np.asarray(laser).astype(str), return_inverse=True)
+    span = int(col.max() - col.min() + 3) if col.size else 1
+    key = (np.asarray(frame, dtype=np.int64) * len(lasers) + lid) * span + (col - col.min() + 1)
+    return key, col
+
+
+def link_traces(
+    frame: np.ndarray,
+    laser: np.ndarray,
+    u: np.ndarray,
+    v: np.ndarray,
+    max_step_px: float = 8.0,
+    max_kink_px: float = 1.5,
+) -> np.ndarray:
+    """Index of the centre in the previous column of the same trace (-1 where a trace starts).
+
+    A centre continues a trace if, in the same frame, for the same laser, the previous image
+    column holds a centre within ``max_step_px`` rows (a steep stripe moves several rows per
+    column); the nearest such centre is taken. A link whose step differs from the step before
+    it by more than ``max_kink_px`` rows is cut: the stripe jumped (an edge, a step), and the
+    two sides are separate traces.
+    """
+    n = len(u)
+    prev = np.full(n, -1, dtype=np.int64)
+    if n == 0:
+        return prev
+    key, _ = _keys(frame, laser, u)
+    v = np.asarray(v, dtype=np.float64)
+    order = np.lexsort((v, key))
+    ks = key[order]
+    lo = np.searchsorted(ks, key - 1, side="left")
+    hi = np.searchsorted(ks, key - 1, side="right")
+    best = np.full(n, np.inf)
+    for k in range(int((hi - lo).max(initial=0))):
+        cand = lo + k
+        ok = cand < hi
+        j = order[np.where(ok, cand, 0)]
+        d = np.where(ok, np.abs(v[j] - v), np.inf)
+        better = (d < best) & (d <= max_step_px)
+        prev[better] = j[better]
+        best[better] = d[better]
+    # a jump is a link whose step is out of line with the steps on both sides of it
+    step = np.where(prev >= 0, v - v[np.maximum(prev, 0)], np.nan)
+    nxt = np.full(n, -1, dtype=np.int64)
+    nxt[prev[prev >= 0]] = np.flatnonzero(prev >= 0)
+    before = np.where(prev >= 0, step[np.maximum(prev, 0)], np.nan)
+    after = np.where(nxt >= 0, step[np.maximum(nxt, 0)], np.nan)
+    with np.errstate(invalid="ignore"):
+        off_before = ~(np.abs(step - before) <= max_kink_px)  # NaN (no neighbour) counts as off
+        off_after = ~(np.abs(step - after) <= max_kink_px)
+    has_side = np.isfinite(before) | np.isfinite(after)
+    jump = (prev >= 0) & has_side & off_before & off_after
+    prev[jump] = -1
+    return prev
+
+
+def trace_position(
+    prev: np.ndarray, u: np.ndarray, v: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Trace id and the distance from the trace's start and to its end, for each centre.
+
+    Distances are in columns, or with ``v`` in pixels along the stripe (columns times
+    sqrt(1 + slope^2), the slope being the trace's mean step in rows per column).
+    """
+    n = len(prev)
+    root = np.where(prev >= 0, prev, np.arange(n))
+    while True:  # pointer jumping: log2(longest trace) rounds
+        nxt = root[root]
+        if np.array_equal(nxt, root):
+            break
+        root = nxt
+    col = np.rint(np.asarray(u, dtype=np.float64)).astype(np.int64)
+    last = col.copy()
+    np.maximum.at(last, root, col)
+    start, end = (col - col[root]).astype(np.float64), (last[root] - col).astype(np.float64)
+    if v is not None and n:
+        v = np.asarray(v, dtype=np.float64)
+        has = prev >= 0
+        steps = np.zeros(n)
+        steps[has] = np.abs(v[has] - v[prev[has]])
+        total = np.bincount(root, weights=steps, minlength=n)
+        count = np.bincount(root, weights=has.astype(np.float64), minlength=n)
+        slope = total[root] / np.maximum(count[root], 1.0)
+        factor = np.sqrt(1.0 + slope**2)
+        start, end = start * factor, end * factor
+    return root, start, end
+
+
+def smooth_along(
+    trace: np.ndarray, u: np.ndarray, v: np.ndarray, window: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Savitzky–Golay (quadratic) smoothing of ``v`` along each trace over ``window`` columns.
+
+    Returns the smoothed rows and a mask of the centres whose whole window lies in their
+    trace (the others keep their row and are marked False).
+    """
+    v = np.asarray(v, dtype=np.float64)
+    if window <= 1:
+        return v.copy(), np.ones(len(v), dtype=bool)
+    if window % 2 == 0:
+        raise ValueError(f"the smoothing window must be an odd number of columns, got {window}")
+    h = window // 2
+    coeffs = savgol_coeffs(window, 2, use="dot")
+    col = np.rint(np.asarray(u, dtype=np.float64)).astype(np.int64)
+    span = int(col.max() - col.min() + 2 * h + 3) if col.size else 1
+    key = trace.astype(np.int64) * span + (col - col.min() + h + 1)
+    order = np.argsort(key, kind="stable")
+    ks = key[order]
+    out = np.zeros(len(v))
+    full = np.ones(len(v), dtype=bool)
+    for k, c in zip(range(-h, h + 1), coeffs, strict=True):
+        i = np.searchsorted(ks, key + k)
+        i = np.minimum(i, len(ks) - 1)
+        hit = ks[i] == key + k
+        full &= hit
+        out += c * np.where(hit, v[order[i]], 0.0)
+    return np.where(full, out, v), full

@@ -1,0 +1,246 @@
+"""Which laser made each stripe centre: the paper's periodic A, B, AB rule (eq. 14-15), hardened.
+
+A-frame and B-frame centres belong to their laser. A centre of an AB frame at column ``u`` and
+row ``v`` is compared with the references: the centres of the latest A frame and of the
+latest B frame in the same column. The paper labels it with the laser whose reference is
+within ``T`` px (the nearest if both are). Beyond the paper:
+
+- **no stale references**: a reference frame more than ``max_frame_gap`` frames before the AB
+  frame is not used; an AB frame without both references (a missing A or B frame, an ``off``
+  frame in its place, the start of the scan) is dropped whole and counted, because with one
+  reference only a centre of the other laser near the crossing would be mislabelled silently;
+- **prediction** (``predict``): the stripe moves between frames as the arm moves; each
+  reference is extrapolated to the AB frame from the last two frames of its laser (same
+  column, nearest row, at most ``T`` px per frame apart), so ``T`` can stay tight at any
+  scanning speed (the first AB frame of a scan has a single frame per laser: not predicted);
+- **unique match** (``ambiguity_px``): where both references are within ``T`` and the two
+  distances differ by less than ``ambiguity_px`` (near the crossing of the stripes, where A and
+  B are only a few pixels apart) the centre is dropped as ambiguous instead of guessed;
+  ``ambiguity_px = 0`` is the paper's rule;
+- **one centre per laser per column**: if two AB centres of one column get the same laser,
+  only the nearest to the reference keeps it (the other is a conflict, dropped);
+- merged segments (flag ``MERGED`` from the extractor: two stripes in one blob) of AB frames
+  are dropped, centres of ``off`` frames are dropped; every drop is counted by reason.
+
+Everything is vectorised per frame; the frame loop carries the last two frames of each laser,
+so a long scan is processed batch by batch with :class:`Disambiguator`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from crossline.errors import StageError
+from crossline.stripes import MERGED
+
+__all__ = ["DROP_REASONS", "Disambiguator", "disambiguate", "nearest_in_column"]
+
+DROP_REASONS = ("off_frame", "merged", "no_reference", "unmatched", "ambiguous", "conflict")
+_BIG = 1.0e6  # key = u * _BIG + v orders centres by column, then row (|v| < 1e5 px)
+
+
+def nearest_in_column(
+    ref_u: np.ndarray, ref_v: np.ndarray, u: np.ndarray, v: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """For each query (u, v): the nearest reference row in the same column, and its distance.
+
+    References must be sorted by (u, v). A query whose column has no reference gets
+    index -1 and distance inf.
+    """
+    n = ref_u.size
+    if n == 0 or u.size == 0:
+        return np.full(u.size, -1, np.int64), np.full(u.size, np.inf)
+    key = ref_u * _BIG + ref_v
+    j = np.searchsorted(key, u * _BIG + v)
+    best = np.full(u.size, np.inf)
+    idx = np.full(u.size, -1, np.int64)
+    for jj in (j - 1, j):
+        jc = np.clip(jj, 0, n - 1)
+        ok = (jj >= 0) & (jj < n) & (ref_u[jc] == u)
+        d = np.where(ok, np.abs(ref_v[jc] - v), np.inf)
+        better = d < best
+        best = np.where(better, d, best)
+        idx = np.where(better, jc, idx)
+    return idx, best
+
+
+@dataclass
+class _Ref:
+    """One reference frame of a laser: its number and its centres sorted by (u, v)."""
+
+    frame: int
+    u: np.ndarray
+    v: np.ndarray
+
+
+def _sorted_ref(frame: int, u: np.ndarray, v: np.ndarray) -> _Ref:
+    o = np.lexsort((v, u))
+    return _Ref(frame, u[o], v[o])
+
+
+@dataclass
+class Disambiguator:
+    """Labels the centres of a scan frame by frame, carrying the latest A and B frames."""
+
+    threshold_px: float = 10.0
+    max_frame_gap: int = 3
+    ambiguity_px: float = 3.0
+    predict: bool = True
+    refs: dict[str, list[_Ref]] = field(default_factory=lambda: {"A": [], "B": []})
+    counts: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not self.threshold_px > 0:
+            raise ValueError(f"threshold_px must be > 0, got {self.threshold_px}")
+        if self.max_frame_gap < 1:
+            raise ValueError(f"max_frame_gap must be >= 1, got {self.max_frame_gap}")
+        if self.ambiguity_px < 0:
+            raise ValueError(f"ambiguity_px must be >= 0, got {self.ambiguity_px}")
+        c = self.counts
+        c.setdefault("centres_in", 0)
+        c.setdefault("frames", {"A": 0, "B": 0, "AB": 0, "off": 0})
+        c.setdefault("centres_by_state", {"A": 0, "B": 0, "AB": 0, "off": 0})
+        c.setdefault("labelled", {"A": 0, "B": 0})
+        c.setdefault("labelled_in_AB", {"A": 0, "B": 0})
+        c.setdefault("dropped", dict.fromkeys(DROP_REASONS, 0))
+        c.setdefault("AB_frames_without_reference", {"A": 0, "B": 0})
+
+    def _reference(self, laser: str, frame: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """The laser's reference centres for ``frame`` (predicted if asked), or None if stale."""
+        refs = self.refs[laser]
+        if not refs or frame - refs[-1].frame > self.max_frame_gap:
+            return None
+        last = refs[-1]
+        if not self.predict or len(refs) < 2 or last.u.size == 0:
+            return last.u, last.v
+        prev = refs[-2]
+        if last.frame - prev.frame > 2 * self.max_frame_gap:
+            return last.u, last.v
+        j, d = nearest_in_column(prev.u, prev.v, last.u, last.v)
+        # the same stripe in the two frames: it may move up to T px per frame between them
+        ok = d <= self.threshold_px * (last.frame - prev.frame)
+        rate = np.where(ok, (last.v - prev.v[np.maximum(j, 0)]) / (last.frame - prev.frame), 0.0)
+        pv = last.v + rate * (frame - last.frame)
+        o = np.lexsort((pv, last.u))
+        return last.u[o], pv[o]
+
+    def process(
+        self, frame: int, state: str, u: np.ndarray, v: np.ndarray, flags: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Label one frame's centres: (label per centre: 'A', 'B' or '' if dropped, distance px).
+
+        The distance is to the matched (predicted) reference for AB frames, NaN otherwise.
+        Frames must come in time order, every frame of the scan, with or without centres.
+        """
+        c = self.counts
+        n = u.size
+        if state not in c["frames"]:
+            raise StageError(f"frame {frame}: unknown laser state {state!r}")
+        c["frames"][state] += 1
+        c["centres_in"] += n
+        c["centres_by_state"][state] += n
+        label = np.full(n, "", dtype="<U2")
+        dist = np.full(n, np.nan)
+        if state in ("A", "B"):
+            label[:] = state
+            c["labelled"][state] += n
+            self.refs[state] = [*self.refs[state][-1:], _sorted_ref(frame, u, v)]
+            return label, dist
+        if state == "off":
+            c["dropped"]["off_frame"] += n
+            return label, dist
+        # an AB frame
+        ref = {laser: self._reference(laser, frame) for laser in ("A", "B")}
+        missing = [laser for laser, r in ref.items() if r is None]
+        if missing:
+            for laser in missing:
+                c["AB_frames_without_reference"][laser] += 1
+            c["dropped"]["no_reference"] += n
+            return label, dist
+        merged = (flags & MERGED) != 0
+        c["dropped"]["merged"] += int(merged.sum())
+        (ua, va), (ub, vb) = ref["A"], ref["B"]
+        _, da = nearest_in_column(ua, va, u, v)
+        _, db = nearest_in_column(ub, vb, u, v)
+        T = self.threshold_px
+        in_a = (da <= T) & ~merged
+        in_b = (db <= T) & ~merged
+        both = in_a & in_b
+        ambiguous = both & (np.abs(da - db) < self.ambiguity_px)
+        is_a = in_a & ~ambiguous & (~in_b | (da < db))
+        is_b = in_b & ~ambiguous & ~is_a
+        unmatched = ~merged & ~in_a & ~in_b
+        # tie (da == db) with ambiguity_px == 0: the paper gives no rule; drop as ambiguous
+        tie = both & ~ambiguous & (da == db)
+        is_b &= ~tie
+        ambiguous |= tie
+        c["dropped"]["unmatched"] += int(unmatched.sum())
+        c["dropped"]["ambiguous"] += int(ambiguous.sum())
+        d = np.where(is_a, da, np.where(is_b, db, np.inf))
+        # one centre per laser per column: keep the nearest
+        lab = np.where(is_a, 1, np.where(is_b, 2, 0))
+        if n > 1:
+            o = np.lexsort((d, lab, u))
+            dup = np.zeros(n, bool)
+            dup[o[1:]] = (u[o[1:]] == u[o[:-1]]) & (lab[o[1:]] == lab[o[:-1]]) & (lab[o[1:]] > 0)
+            c["dropped"]["conflict"] += int(dup.sum())
+            lab = np.where(dup, 0, lab)
+        label[lab == 1] = "A"
+        label[lab == 2] = "B"
+        dist[lab > 0] = d[lab > 0]
+        for laser, code in (("A", 1), ("B", 2)):
+            k = int((lab == code).sum())
+            c["labelled"][laser] += k
+            c["labelled_in_AB"][laser] += k
+        return label, dist
+
+
+def disambiguate(
+    frame: np.ndarray,
+    u: np.ndarray,
+    v: np.ndarray,
+    flags: np.ndarray,
+    scan_frames: np.ndarray,
+    scan_states: np.ndarray,
+    *,
+    threshold_px: float = 10.0,
+    max_frame_gap: int = 3,
+    ambiguity_px: float = 3.0,
+    predict: bool = True,
+    scan: str = "scan",
+) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """Label every centre of a scan A, B or '' (dropped); also return distances and counts.
+
+    ``frame, u, v, flags`` are the centres (rows of a stripes table, in frame order);
+    ``scan_frames, scan_states`` every frame of the scan in time order with its laser state.
+    Raises :class:`StageError` if the scan has AB frames but no A or no B frame.
+    """
+    check_pattern(scan_states, scan)
+    d = Disambiguator(threshold_px, max_frame_gap, ambiguity_px, predict)
+    label = np.full(frame.size, "", dtype="<U2")
+    dist = np.full(frame.size, np.nan)
+    bounds = np.searchsorted(frame, scan_frames, side="left")
+    ends = np.searchsorted(frame, scan_frames, side="right")
+    if frame.size and np.any(np.diff(frame) < 0):
+        raise StageError(f"scan {scan}: centres are not in frame order")
+    for f, s, a, b in zip(scan_frames.tolist(), list(scan_states), bounds, ends, strict=True):
+        lab, dd = d.process(int(f), str(s), u[a:b], v[a:b], flags[a:b])
+        label[a:b] = lab
+        dist[a:b] = dd
+    return label, dist, d.counts
+
+
+def check_pattern(states: np.ndarray, scan: str) -> None:
+    """Raise :class:`StageError` if a scan has AB frames but lacks A or B frames to label them."""
+    s = set(map(str, states))
+    if "AB" in s:
+        lacking = [laser for laser in ("A", "B") if laser not in s]
+        if lacking:
+            raise StageError(
+                f"scan {scan}: has AB frames but no {' and no '.join(lacking)} frame; the "
+                f"crossed stripes of its AB frames cannot be told apart (the periodic pattern "
+                f"A, B, AB of the paper needs both single-laser frames)"
+            )

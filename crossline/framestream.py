@@ -1,0 +1,258 @@
+"""Read the frames of a scan once, streamed, decoded and processed in parallel threads.
+
+Two pieces:
+
+- :func:`decode_png`, a grey-PNG decoder about 2.5x faster than ``cv2.imdecode`` on scan
+  frames: libdeflate (through ``imagecodecs``) inflates, a numba kernel undoes the PNG row
+  filters. Both release the GIL. It handles what scan frames are (grey, 8 or 16 bit, not
+  interlaced) and hands anything else to ``cv2.imdecode``; it needs the optional packages
+  ``numba`` and ``imagecodecs`` and falls back to OpenCV without them. Identical pixels either
+  way (PNG is lossless; the tests compare both decoders on every filter type).
+- :func:`map_frames`, an ordered map over frame files with a bounded number of frames in
+  flight: memory stays flat however long the scan is.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+import zlib
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+from typing import TypeVar
+
+import cv2
+import numpy as np
+
+from crossline.imageio import ImageError
+
+__all__ = ["DECODERS", "decode_png", "fast_decoder_available", "map_frames", "read_frame"]
+
+T = TypeVar("T")
+
+_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+try:  # optional accelerators: libdeflate inflate and a JIT row-unfilter kernel
+    import imagecodecs as _imagecodecs
+
+    _inflate_lib = _imagecodecs.deflate_decode if _imagecodecs.DEFLATE.available else None
+except ImportError:  # pragma: no cover - depends on the environment
+    _inflate_lib = None
+
+try:
+    import numba as _numba
+except ImportError:  # pragma: no cover - depends on the environment
+    _numba = None
+
+
+def _unfilter_py(raw: np.ndarray, h: int, stride: int, bpp: int, out: np.ndarray) -> bool:
+    """PNG row unfiltering (filter types 0-4) into ``out`` (h, stride); False on a bad type."""
+    for r in range(h):
+        base = r * (stride + 1) + 1
+        f = raw[base - 1]
+        if f == 0:
+            for x in range(stride):
+                out[r, x] = raw[base + x]
+        elif f == 1:
+            for x in range(stride):
+                a = np.int32(out[r, x - bpp]) if x >= bpp else np.int32(0)
+                out[r, x] = (np.int32(raw[base + x]) + a) & 255
+        elif f == 2:
+            if r == 0:
+                for x in range(stride):
+                    out[r, x] = raw[base + x]
+            else:
+                for x in range(stride):
+                    out[r, x] = (np.int32(raw[base + x]) + np.int32(out[r - 1, x])) & 255
+        elif f == 3:
+            if bpp == 1:
+                # carry the left neighbour in a register: the recurrence is latency-bound
+                a = np.int32(0)
+                for x in range(stride):
+                    b = np.int32(out[r - 1, x]) if r > 0 else np.int32(0)
+                    a = (np.int32(raw[base + x]) + ((a + b) >> 1)) & 255
+                    out[r, x] = a
+            else:
+                for x in range(stride):
+                    a = np.int32(out[r, x - bpp]) if x >= bpp else np.int32(0)
+                    b = np.int32(out[r - 1, x]) if r > 0 else np.int32(0)
+                    out[r, x] = (np.int32(raw[base + x]) + ((a + b) >> 1)) & 255
+        elif f == 4:
+            for x in range(stride):
+                a = np.int32(out[r, x - bpp]) if x >= bpp else np.int32(0)
+                b = np.int32(out[r - 1, x]) if r > 0 else np.int32(0)
+                c = np.int32(out[r - 1, x - bpp]) if (x >= bpp and r > 0) else np.int32(0)
+                p = a + b - c
+                pa = abs(p - a)
+                pb = abs(p - b)
+                pc = abs(p - c)
+                if pa <= pb and pa <= pc:
+                    pr = a
+                elif pb <= pc:
+                    pr = b
+                else:
+                    pr = c
+                out[r, x] = (np.int32(raw[base + x]) + pr) & 255
+        else:
+            return False
+    return True
+
+
+_unfilter = (
+    _numba.njit(cache=True, nogil=True, boundscheck=False)(_unfilter_py) if _numba is not None else None
+)
+
+
+def fast_decoder_available() -> bool:
+    """True when the libdeflate + numba PNG decoder can be used (else OpenCV decodes)."""
+    return _unfilter is not None and _inflate_lib is not None
+
+
+def _inflate(data: bytes, size: int) -> bytes:
+    if _inflate_lib is not None:
+        return _inflate_lib(data, out=size)
+    return zlib.decompress(data)  # pragma: no cover - without imagecodecs
+
+
+def _decode_cv2(data: bytes, path: str | Path) -> np.ndarray:
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ImageError(f"{path}: unreadable or truncated image")
+    return img
+
+
+def _decode_fast(data: bytes, path: str | Path) -> np.ndarray | None:
+    """Decode a plain grey PNG; None if it is of a kind left to OpenCV."""
+    if not data.startswith(_SIGNATURE) or len(data) < 33:
+        return None
+    length, ctype = struct.unpack(">I4s", data[8:16])
+    if ctype != b"IHDR" or length != 13:
+        return None
+    if zlib.crc32(data[12:29]) & 0xFFFFFFFF != struct.unpack(">I", data[29:33])[0]:
+        raise ImageError(f"{path}: corrupt PNG (CRC mismatch in IHDR)")
+    w, h, depth, colour, comp, filt, interlace = struct.unpack(">IIBBBBB", data[16:29])
+    if colour != 0 or depth not in (8, 16) or comp or filt or interlace or w == 0 or h == 0:
+        return None
+    idat: list[bytes] = []
+    pos = 33
+    n = len(data)
+    while True:
+        if pos + 8 > n:
+            raise ImageError(f"{path}: truncated PNG (file ends at byte {n} before IEND)")
+        length, ctype = struct.unpack(">I4s", data[pos : pos + 8])
+        end = pos + 12 + length
+        if end > n:
+            raise ImageError(f"{path}: truncated PNG (chunk {ctype!r} runs past the end of the file)")
+        if ctype == b"IDAT":
+            idat.append(data[pos + 8 : pos + 8 + length])
+        elif ctype == b"IEND":
+            break
+        elif ctype[0] & 0x20 == 0:  # an unknown critical chunk (e.g. PLTE): not ours
+            return None
+        pos = end
+    if not idat:
+        raise ImageError(f"{path}: corrupt PNG (no image data)")
+    bpp = depth // 8
+    stride = w * bpp
+    size = h * (stride + 1)
+    try:
+        raw = _inflate(b"".join(idat), size)
+    except Exception as exc:  # libdeflate/zlib raise their own error types
+        raise ImageError(f"{path}: corrupt PNG image data ({exc})") from exc
+    if len(raw) != size:
+        raise ImageError(f"{path}: corrupt PNG (image data of {len(raw)} bytes, expected {size})")
+    out = np.empty((h, stride), np.uint8)
+    if not _unfilter(np.frombuffer(raw, np.uint8), h, stride, bpp, out):
+        raise ImageError(f"{path}: corrupt PNG (unknown row filter type)")
+    if depth == 16:
+        return out.view(">u2").astype(np.uint16)
+    return out
+
+
+DECODERS = ("auto", "fast", "opencv")
+
+
+def decode_png(data: bytes, path: str | Path = "<bytes>", decoder: str = "auto") -> np.ndarray:
+    """Decode a grey 8/16-bit PNG's bytes to a (height, width) uint8/uint16 array.
+
+    ``decoder``: ``fast`` (libdeflate + numba, see module doc), ``opencv`` (``cv2.imdecode``)
+    or ``auto`` (fast when available). Errors name ``path``.
+    """
+    if decoder not in DECODERS:
+        raise ValueError(f"decoder must be one of {DECODERS}, got {decoder!r}")
+    if decoder != "opencv" and fast_decoder_available():
+        img = _decode_fast(data, path)
+        if img is not None:
+            return img
+    elif decoder == "fast":
+        raise RuntimeError("the fast PNG decoder needs the packages numba and imagecodecs")
+    return _decode_cv2(data, path)
+
+
+def read_frame(
+    path: str | Path, shape: tuple[int, int] | None = None, decoder: str = "auto"
+) -> np.ndarray:
+    """Read and decode one grey frame; ``shape`` (height, width) is checked if given."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise ImageError(f"{path}: cannot be read ({exc.strerror})") from exc
+    img = decode_png(data, path, decoder)
+    if img.ndim != 2:
+        raise ImageError(f"{path}: expected a single-channel grey image, got shape {img.shape}")
+    if shape is not None and img.shape != tuple(shape):
+        raise ImageError(
+            f"{path}: image is {img.shape[1]}x{img.shape[0]} px, expected {shape[1]}x{shape[0]} px"
+        )
+    return img
+
+
+def map_frames(
+    paths: Iterable[str | Path],
+    fn: Callable[[int, np.ndarray], T],
+    *,
+    shape: tuple[int, int] | None = None,
+    threads: int = 1,
+    in_flight: int | None = None,
+    decoder: str = "auto",
+) -> Iterator[T]:
+    """Yield ``fn(i, image)`` for the i-th frame file, in order, reading each file once.
+
+    Reading, decoding and ``fn`` run together in ``threads`` worker threads (decoding and
+    OpenCV/numpy kernels release the GIL); at most ``in_flight`` frames (default 2 per
+    thread) are being worked on or waiting, so memory does not grow with the scan length.
+    """
+    threads = max(1, int(threads))
+    in_flight = max(1, in_flight or 2 * threads)
+
+    def work(i: int, p: str | Path) -> T:
+        return fn(i, read_frame(p, shape, decoder))
+
+    paths = list(paths)
+    if threads == 1:
+        for i, p in enumerate(paths):
+            yield work(i, p)
+        return
+    pending: deque[Future[T]] = deque()
+    with ThreadPoolExecutor(threads, thread_name_prefix="frames") as pool:
+        try:
+            for i, p in enumerate(paths):
+                if len(pending) >= in_flight:
+                    yield pending.popleft().result()
+                pending.append(pool.submit(work, i, p))
+            while pending:
+                yield pending.popleft().result()
+        finally:
+            for f in pending:
+                f.cancel()
+
+
+def default_threads() -> int:
+    """CPU threads available to this process."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)

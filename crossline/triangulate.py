@@ -1,0 +1,262 @@
+"""From labelled stripe centres to 3-D points: pixels -> camera frame (eq. 8) -> arm base.
+
+Each centre ``(u, v)`` (full-sensor px) is undistorted with the calibrated camera, its ray
+through the camera centre is intersected with the plane of the centre's laser
+(``Z = -D / (n . r)``, the paper's eq. 8 for any ray) and the point is carried to the base
+frame with its frame's arm pose: ``p_base = T_base_tool(frame) @ T_tool_cam @ p_cam``.
+
+:func:`run_triangulate` streams the stripes file row group by row group (a row group is a
+fixed slice of frames), labels the centres (:mod:`crossline.disambiguate`), triangulates and
+writes ``points/<scan>.parquet`` with the counts of the labelling in its metadata and in a
+sidecar ``points/<scan>.json``: memory does not grow with the scan's length.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from crossline.atomic import atomic_path, write_json
+from crossline.camera import Camera
+from crossline.centreline import link_traces, smooth_along, trace_position
+from crossline.disambiguate import Disambiguator, check_pattern
+from crossline.errors import StageError
+from crossline.laser import LaserPlanes
+from crossline.stripes import read_stripes_meta
+
+log = logging.getLogger(__name__)
+
+__all__ = ["POINTS_SCHEMA", "load_handeye", "run_triangulate", "to_base", "triangulate"]
+
+POINTS_SCHEMA = pa.schema(
+    [
+        ("frame", pa.int64()),
+        ("laser", pa.string()),
+        ("lasers", pa.string()),
+        ("u", pa.float64()),
+        ("v", pa.float64()),
+        ("x_cam", pa.float64()),
+        ("y_cam", pa.float64()),
+        ("z_cam", pa.float64()),
+        ("x", pa.float64()),
+        ("y", pa.float64()),
+        ("z", pa.float64()),
+        ("strength", pa.float32()),
+        ("width", pa.float32()),
+        ("ridge", pa.float32()),
+        ("flags", pa.uint8()),
+        ("ref_dist", pa.float32()),
+    ]
+)
+_META_KEY = b"crossline"
+
+
+def triangulate(
+    camera: Camera, planes: LaserPlanes, uv: np.ndarray, laser: np.ndarray
+) -> np.ndarray:
+    """Camera-frame points (N, 3) of centres (N, 2) px lit by ``laser`` (N,) of 'A'/'B' (eq. 8)."""
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    laser = np.asarray(laser)
+    out = np.full((uv.shape[0], 3), np.nan)
+    r = camera.rays(np.asarray(uv, dtype=np.float64).reshape(-1, 2))
+    for name in ("A", "B"):
+        m = laser == name
+        if m.any():
+            out[m] = planes[name].intersect_rays(r[m])
+    return out
+
+
+def to_base(points_cam: np.ndarray, T_base_tool: np.ndarray, T_tool_cam: np.ndarray) -> np.ndarray:
+    """Base-frame points (N, 3) from camera-frame points (N, 3) and per-point T_base_tool (N, 4, 4)."""
+    T = T_base_tool @ T_tool_cam  # (N, 4, 4) or (4, 4)
+    p = np.asarray(points_cam, dtype=np.float64)
+    if T.ndim == 2:
+        return p @ T[:3, :3].T + T[:3, 3]
+    return np.einsum("nij,nj->ni", T[:, :3, :3], p) + T[:, :3, 3]
+
+
+def load_handeye(path: str | Path) -> np.ndarray:
+    """``T_tool_cam`` (4x4) from handeye.json."""
+    path = Path(path)
+    try:
+        T = np.asarray(json.loads(path.read_text())["T_tool_cam"], dtype=np.float64)
+    except (OSError, KeyError, ValueError, TypeError) as exc:
+        raise StageError(f"{path}: not a hand-eye file with key 'T_tool_cam' ({exc})") from exc
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise StageError(f"{path}: 'T_tool_cam' must be a finite 4x4 matrix, got shape {T.shape}")
+    return T
+
+
+def _load_calibration(camera_json, lasers_json) -> tuple[Camera, LaserPlanes]:
+    try:
+        cam = Camera.load(camera_json)
+    except (OSError, ValueError) as exc:
+        raise StageError(f"{camera_json}: cannot read the camera model ({exc})") from exc
+    try:
+        planes = LaserPlanes.load(lasers_json)
+    except (OSError, ValueError) as exc:
+        raise StageError(f"{lasers_json}: cannot read the laser planes ({exc})") from exc
+    return cam, planes
+
+
+def run_triangulate(
+    capture: str | Path,
+    scan: str,
+    stripes: str | Path,
+    camera_json: str | Path,
+    lasers_json: str | Path,
+    handeye_json: str | Path,
+    out: str | Path,
+    *,
+    threshold_px: float = 10.0,
+    max_frame_gap: int = 3,
+    ambiguity_px: float = 3.0,
+    predict: bool = True,
+    end_trim_px: float = 8.0,
+    smooth_px: int = 1,
+    stats: str | Path | None = None,
+) -> dict[str, Any]:
+    """Label, triangulate and write the points of one scan; return the counts.
+
+    Writes ``out`` (parquet, counts in its metadata under ``crossline``) and the same counts
+    as JSON to ``stats`` (default: ``out`` with the suffix ``.json``). Centres within
+    ``end_trim_px`` pixels (along the stripe) of the end of their trace are dropped; ``smooth_px`` > 1 smooths
+    the centre line along each trace over that many columns (:mod:`crossline.centreline`).
+    """
+    from crossline.capture import laser_pattern, open_capture
+
+    t0 = time.perf_counter()
+    cap = open_capture(capture)
+    if scan not in cap.scans:
+        raise StageError(f"capture {cap.root}: no scan {scan!r} (known: {sorted(cap.scans)})")
+    sc = cap.scans[scan]
+    check_pattern(sc.lasers, scan)
+    cam, planes = _load_calibration(camera_json, lasers_json)
+    T_tool_cam = load_handeye(handeye_json)
+    smeta = read_stripes_meta(stripes)
+    if smeta.get("scan") != scan or smeta.get("frame_range") != [0, len(sc.frames)]:
+        raise StageError(f"{stripes}: holds scan {smeta.get('scan')!r} frames {smeta.get('frame_range')}, "
+                         f"expected all {len(sc.frames)} frames of scan {scan!r}")
+    pos_of = {int(f): i for i, f in enumerate(sc.frames)}
+    by_number = np.argsort(sc.frames, kind="stable")
+    sorted_frames = sc.frames[by_number]
+    dis = Disambiguator(threshold_px, max_frame_gap, ambiguity_px, predict)
+    pf = pq.ParquetFile(stripes)
+    next_pos = 0  # frames before this scan position have been given to the disambiguator
+    n_points = 0
+    trimmed = {"stripe_end": 0, "smoothing_window": 0}
+    out = Path(out)
+
+    def feed_until(pos: int) -> None:
+        nonlocal next_pos
+        empty = np.empty(0)
+        while next_pos < pos:  # frames without any centre still move the pattern on
+            dis.process(int(sc.frames[next_pos]), str(sc.lasers[next_pos]), empty, empty,
+                        np.empty(0, np.uint8))
+            next_pos += 1
+
+    with atomic_path(out) as tmp, pq.ParquetWriter(
+        tmp, POINTS_SCHEMA, compression="zstd", use_dictionary=["frame", "laser", "lasers", "flags"],
+        write_statistics=["frame"],
+    ) as w:
+        for g in range(pf.num_row_groups):
+            t = pf.read_row_group(g)
+            frame = t.column("frame").to_numpy()
+            u = t.column("u").to_numpy()
+            v = t.column("v").to_numpy()
+            flags = t.column("flags").to_numpy()
+            try:
+                pos = np.fromiter((pos_of[f] for f in np.unique(frame).tolist()), np.int64)
+            except KeyError as exc:
+                raise StageError(f"{stripes}: frame {exc} is not a frame of scan {scan!r}") from exc
+            ufr = np.unique(frame)
+            starts = np.searchsorted(frame, ufr, side="left")
+            ends = np.searchsorted(frame, ufr, side="right")
+            label = np.full(frame.size, "", dtype="<U2")
+            dist = np.full(frame.size, np.nan)
+            for f, p, a, b in zip(ufr.tolist(), pos.tolist(), starts, ends, strict=True):
+                if p < next_pos:
+                    raise StageError(f"{stripes}: frames out of order at frame {f}")
+                feed_until(p)
+                lab, dd = dis.process(f, str(sc.lasers[p]), u[a:b], v[a:b], flags[a:b])
+                label[a:b] = lab
+                dist[a:b] = dd
+                next_pos = p + 1
+            keep = label != ""
+            if not keep.any():
+                continue
+            idx = np.flatnonzero(keep)
+            prev = link_traces(frame[idx], label[idx], u[idx], v[idx])
+            trace, from_start, to_end = trace_position(prev, u[idx], v[idx])
+            inner = np.minimum(from_start, to_end) >= end_trim_px
+            v_used, whole = smooth_along(trace, u[idx], v[idx], smooth_px)
+            trimmed["stripe_end"] += int((~inner).sum())
+            trimmed["smoothing_window"] += int((inner & ~whole).sum())
+            v_used, idx = v_used[inner & whole], idx[inner & whole]
+            if idx.size == 0:
+                continue
+            uv = np.stack([u[idx], v_used], axis=1)
+            lab = label[idx]
+            p_cam = triangulate(cam, planes, uv, lab)
+            fpos = by_number[np.searchsorted(sorted_frames, frame[idx])]  # scan position of each point
+            p_base = to_base(p_cam, sc.T_base_tool[fpos], T_tool_cam)
+            sel = t.take(pa.array(idx))
+            cols = {
+                "frame": sel.column("frame"),
+                "laser": pa.array(lab.tolist(), pa.string()),
+                "lasers": sel.column("lasers"),
+                "u": sel.column("u"),
+                "v": pa.array(v_used),
+                "x_cam": pa.array(p_cam[:, 0]), "y_cam": pa.array(p_cam[:, 1]),
+                "z_cam": pa.array(p_cam[:, 2]),
+                "x": pa.array(p_base[:, 0]), "y": pa.array(p_base[:, 1]), "z": pa.array(p_base[:, 2]),
+                "strength": sel.column("strength"),
+                "width": sel.column("width"),
+                "ridge": sel.column("ridge"),
+                "flags": sel.column("flags"),
+                "ref_dist": pa.array(dist[idx].astype(np.float32)),
+            }
+            tbl = pa.table(cols, schema=POINTS_SCHEMA)
+            w.write_table(tbl, row_group_size=tbl.num_rows)
+            n_points += tbl.num_rows
+        feed_until(len(sc.frames))
+        counts = dict(dis.counts)
+        counts.update({f"dropped_{k}": n for k, n in trimmed.items()})
+        pat = laser_pattern(sc.lasers)
+        meta = {
+            "scan": scan,
+            "extractor": smeta.get("extractor"),
+            "params": {"threshold_px": threshold_px, "max_frame_gap": max_frame_gap,
+                       "ambiguity_px": ambiguity_px, "predict": bool(predict),
+                       "end_trim_px": end_trim_px, "smooth_px": smooth_px},
+            "points": n_points,
+            "frames": len(sc.frames),
+            "points_per_frame": n_points / max(len(sc.frames), 1),
+            "pattern": pat["period"],
+            "pattern_breaks": len(pat["breaks"]),
+            "counts": counts,
+            "stripes_counts": smeta.get("counts", {}),
+        }
+        if n_points == 0:  # raised inside the block: no file is left behind
+            raise StageError(f"scan {scan}: no stripe centre could be labelled A or B "
+                             f"(counts: {json.dumps(counts)})")
+        w.add_key_value_metadata({_META_KEY: json.dumps(meta, sort_keys=True)})
+    write_json(Path(stats) if stats is not None else out.with_suffix(".json"), meta)
+    log.info("scan %s: %d points from %d centres in %.2f s", scan, n_points, counts["centres_in"],
+             time.perf_counter() - t0)
+    return meta
+
+
+def read_points_meta(path: str | Path) -> dict[str, Any]:
+    """The parameters and counts stored in a points parquet's metadata."""
+    md = pq.ParquetFile(path).metadata.metadata or {}
+    if _META_KEY not in md:
+        raise StageError(f"{path}: not a points file (no crossline metadata)")
+    return json.loads(md[_META_KEY])

@@ -1,0 +1,68 @@
+"""Centre-line traces: linking, end trimming and smoothing along the stripe."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from crossline.centreline import link_traces, smooth_along, trace_position
+
+
+def _stripe(frame, laser, u0, u1, v_of_u):
+    u = np.arange(u0, u1, dtype=float)
+    return np.full(u.size, frame), np.full(u.size, laser), u, v_of_u(u)
+
+
+def _cat(*parts):
+    return [np.concatenate(x) for x in zip(*parts, strict=True)]
+
+
+def test_traces_split_at_gaps_jumps_frames_and_lasers() -> None:
+    frame, laser, u, v = _cat(
+        _stripe(0, "A", 100, 120, lambda u: 0.8 * u),        # trace 1
+        _stripe(0, "A", 125, 140, lambda u: 0.8 * u),        # gap of 5 columns: trace 2
+        _stripe(0, "A", 140, 150, lambda u: 0.8 * u + 30),   # a step of 30 px: trace 3
+        _stripe(0, "A", 150, 170, lambda u: 0.8 * u + 34),   # a step of 4 px (a kink): trace 4
+        _stripe(0, "B", 100, 120, lambda u: 500 - u),        # the other laser: trace 4
+        _stripe(1, "A", 100, 120, lambda u: 0.8 * u),        # the next frame: trace 5
+    )
+    rng = np.random.default_rng(0)
+    order = rng.permutation(len(u))  # input order must not matter
+    frame, laser, u, v = frame[order], laser[order], u[order], v[order]
+    prev = link_traces(frame, laser, u, v)
+    trace, start, end = trace_position(prev, u)
+    assert len(np.unique(trace)) == 6
+    i = np.flatnonzero((frame == 0) & (laser == "A") & (u == 119))[0]
+    assert start[i] == 19 and end[i] == 0
+    _, start_px, _ = trace_position(prev, u, v)
+    assert start_px[i] == pytest.approx(19 * np.hypot(1, 0.8))  # px along a 0.8-slope stripe
+    i = np.flatnonzero((frame == 0) & (laser == "A") & (u == 140) & (v > 130))[0]
+    assert start[i] == 0 and end[i] == 9
+    # two centres of the same laser in one column (a step seen twice) stay in their traces
+    assert np.all(prev[prev >= 0] != np.arange(len(u))[prev >= 0])
+
+
+def test_smoothing_keeps_quadratics_and_reduces_noise() -> None:
+    frame, laser, u, v = _stripe(3, "A", 0, 400, lambda u: 200 + 0.5 * u + 2e-4 * (u - 150) ** 2)
+    steep = _stripe(4, "A", 0, 50, lambda u: 3.0 * u)  # 3 rows per column: still one trace
+    assert (link_traces(*steep) >= 0).sum() == 49
+    trace, _, _ = trace_position(link_traces(frame, laser, u, v), u)
+    vs, full = smooth_along(trace, u, v, 9)
+    assert full.sum() == 400 - 8 and not full[:4].any() and not full[-4:].any()
+    np.testing.assert_allclose(vs[full], v[full], atol=1e-9)  # a local quadratic is exact
+    noisy = v + np.random.default_rng(1).normal(0, 0.1, v.size)
+    vs, full = smooth_along(trace, u, noisy, 15)
+    before = np.std(noisy[full] - v[full])
+    after = np.std(vs[full] - v[full])
+    assert after < 0.45 * before  # white noise: factor ~0.4 for a 15-column quadratic
+    vs, full = smooth_along(trace, u, noisy, 1)
+    assert full.all() and np.array_equal(vs, noisy)
+    with pytest.raises(ValueError, match="odd number of columns"):
+        smooth_along(trace, u, noisy, 4)
+
+
+def test_empty_input() -> None:
+    e = np.empty(0)
+    prev = link_traces(e.astype(int), e.astype(str), e, e)
+    trace, a, b = trace_position(prev, e)
+    assert trace.size == a.size == b.size == 0

@@ -1,0 +1,186 @@
+"""A/B labelling on hand-made centre sets with known labels, broken patterns included."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from crossline.disambiguate import Disambiguator, disambiguate, nearest_in_column
+from crossline.errors import StageError
+from crossline.stripes import MERGED
+
+U = np.arange(100.0, 400.0)
+
+
+def line(laser: str, frame: int, speed: float = 0.0) -> np.ndarray:
+    """Row of stripe A or B at column U in a frame: an X crossing at u = 250."""
+    slope = 0.3 if laser == "A" else -0.3
+    return 200.0 + slope * (U - 250.0) + speed * frame
+
+
+def build(states, speed=0.0, drop_frames=()):
+    """Centre table of a scan: per frame the stripes its state lights; true labels too."""
+    rows = {"frame": [], "u": [], "v": [], "flags": [], "truth": []}
+    for f, s in enumerate(states):
+        if f in drop_frames:
+            continue
+        lit = {"A": "A", "B": "B", "AB": "AB", "off": ""}[s]
+        for laser in lit:
+            rows["frame"].append(np.full(U.size, f))
+            rows["u"].append(U)
+            rows["v"].append(line(laser, f, speed))
+            rows["flags"].append(np.zeros(U.size, np.uint8))
+            rows["truth"].append(np.full(U.size, laser))
+    out = {k: np.concatenate(v) if v else np.empty(0) for k, v in rows.items()}
+    o = np.lexsort((out["v"], out["u"], out["frame"]))
+    return {k: v[o] for k, v in out.items()}
+
+
+def run(states, t, **kw):
+    return disambiguate(t["frame"], t["u"], t["v"], t["flags"], np.arange(len(states)),
+                        np.array(states), **kw)
+
+
+def sep(t):
+    """|vA - vB| at each centre's column (the crossing band is where it is small)."""
+    return np.abs(0.6 * (t["u"] - 250.0))
+
+
+def test_paper_pattern_labels_everything_right():
+    states = ["A", "B", "AB"] * 10
+    t = build(states, speed=0.4)
+    label, dist, counts = run(states, t, threshold_px=10, ambiguity_px=3)
+    done = label != ""
+    assert np.all(label[done] == t["truth"][done])
+    ab = np.isin(t["frame"], np.flatnonzero(np.array(states) == "AB"))
+    # only the crossing band is dropped (ambiguous), nothing else
+    assert np.all(done[ab & (sep(t) > 6)])
+    assert counts["dropped"]["ambiguous"] == np.count_nonzero(ab & ~done)
+    assert counts["labelled"]["A"] + counts["labelled"]["B"] == np.count_nonzero(done)
+    assert counts["frames"] == {"A": 10, "B": 10, "AB": 10, "off": 0}
+    assert np.all(np.isfinite(dist[ab & done])) and np.all(np.isnan(dist[~ab]))
+
+
+def test_paper_rule_labels_the_crossing_band_and_mislabels_some():
+    # the paper's nearest-wins (ambiguity 0) without prediction, fast motion: near the crossing
+    # the stale reference of the other laser is nearer, which is a wrong label
+    states = ["A", "B", "AB"] * 6
+    t = build(states, speed=1.5)
+    label, _, _counts = run(states, t, threshold_px=10, ambiguity_px=0, predict=False)
+    ab = np.isin(t["frame"], np.flatnonzero(np.array(states) == "AB"))
+    wrong = (label != "") & (label != t["truth"])
+    assert wrong[ab].sum() > 0
+    assert np.all(~wrong[ab & (sep(t) > 15)])  # none away from the crossing band
+    # with prediction and the unique-match rule: no wrong label at all
+    label2, _, counts2 = run(states, t, threshold_px=10, ambiguity_px=3, predict=True)
+    assert np.all((label2 == "") | (label2 == t["truth"]))
+    assert counts2["dropped"]["ambiguous"] > 0
+
+
+def test_prediction_keeps_up_with_fast_motion():
+    states = ["A", "B", "AB"] * 6
+    t = build(states, speed=4.0)  # 8 px between the A frame and the AB frame
+    ab = np.isin(t["frame"], np.flatnonzero(np.array(states) == "AB"))
+    label, _, _ = run(states, t, threshold_px=5, predict=False)
+    # the A reference (two frames back, 8 px away) is out of reach of the paper's rule
+    assert (label[ab & (t["truth"] == "A")] == "").mean() > 0.9
+    label, _, _c = run(states, t, threshold_px=5, predict=True)
+    first_ab = t["frame"] == 2  # no second reference frame yet: not predicted
+    done = (label != "") & ab & ~first_ab
+    assert np.all(label[done] == t["truth"][done])
+    assert done.sum() >= 0.9 * np.count_nonzero(ab & ~first_ab & (sep(t) > 6))
+
+
+def test_missing_a_frame_is_counted_not_mislabelled():
+    # frame 3 should be A but the arm sent B (pattern broken); frame 6 lost entirely
+    states = ["A", "B", "AB", "B", "B", "AB", "A", "B", "AB", "A", "B", "AB"]
+    t = build(states, drop_frames=())
+    label, _, counts = run(states, t, max_frame_gap=3)
+    # AB frame 5: its latest A is frame 0 (5 frames back): dropped whole
+    assert np.all(label[t["frame"] == 5] == "")
+    assert counts["AB_frames_without_reference"]["A"] == 1
+    assert counts["dropped"]["no_reference"] == np.count_nonzero(t["frame"] == 5)
+    done = label != ""
+    assert np.all(label[done] == t["truth"][done])
+
+
+def test_off_frame_in_place_of_b():
+    states = ["A", "B", "AB", "A", "off", "AB", "A", "B", "AB"]
+    t = build(states)
+    label, _, counts = run(states, t, max_frame_gap=3)
+    # AB frame 5: B reference is frame 1, 4 frames back: dropped
+    assert np.all(label[t["frame"] == 5] == "")
+    assert counts["AB_frames_without_reference"] == {"A": 0, "B": 1}
+    assert counts["frames"]["off"] == 1
+    done = label != ""
+    assert np.all(label[done] == t["truth"][done])
+
+
+def test_off_frame_centres_are_dropped():
+    states = ["A", "B", "AB", "off"]
+    t = build(states)
+    extra = {"frame": np.full(3, 3), "u": np.array([150.0, 151, 152]), "v": np.full(3, 20.0),
+             "flags": np.zeros(3, np.uint8), "truth": np.full(3, "")}
+    t = {k: np.concatenate([t[k], extra[k]]) for k in t}
+    label, _, counts = run(states, t)
+    assert counts["dropped"]["off_frame"] == 3 and np.all(label[t["frame"] == 3] == "")
+
+
+def test_scan_start_ab_frame_has_no_reference():
+    states = ["AB", "A", "B", "AB"]
+    t = build(states)
+    label, _, counts = run(states, t)
+    assert np.all(label[t["frame"] == 0] == "")
+    assert counts["AB_frames_without_reference"] == {"A": 1, "B": 1}
+
+
+def test_no_a_frame_is_an_error_naming_the_scan():
+    states = ["B", "AB", "B", "AB"]
+    t = build(states)
+    with pytest.raises(StageError, match=r"scan gauge: has AB frames but no A frame"):
+        run(states, t, scan="gauge")
+    # a scan of single-laser frames only is fine
+    states = ["A", "A", "A"]
+    label, _, _ = run(states, build(states))
+    assert np.all(label == "A")
+
+
+def test_unmatched_merged_and_conflict():
+    d = Disambiguator(threshold_px=10, max_frame_gap=3, ambiguity_px=3, predict=False)
+    u = np.array([10.0, 10.0, 11.0, 12.0, 12.0])
+    d.process(0, "A", np.array([10.0, 11.0, 12.0]), np.array([100.0, 100.0, 100.0]), np.zeros(3, np.uint8))
+    d.process(1, "B", np.array([10.0, 11.0, 12.0]), np.array([150.0, 150.0, 150.0]), np.zeros(3, np.uint8))
+    v = np.array([101.0, 149.0, 125.0, 100.5, 102.0])
+    flags = np.array([0, MERGED, 0, 0, 0], np.uint8)
+    label, dist = d.process(2, "AB", u, v, flags)
+    # col 10: A matched, the B-side one is merged; col 11: 25 px from both: unmatched;
+    # col 12: two centres near A: the nearer keeps the label, the other is a conflict
+    assert list(label) == ["A", "", "", "A", ""]
+    assert d.counts["dropped"]["merged"] == 1
+    assert d.counts["dropped"]["unmatched"] == 1
+    assert d.counts["dropped"]["conflict"] == 1
+    np.testing.assert_allclose(dist[[0, 3]], [1.0, 0.5])
+
+
+def test_stale_reference_not_used():
+    d = Disambiguator(threshold_px=10, max_frame_gap=2, predict=False)
+    z = np.zeros(1, np.uint8)
+    d.process(0, "A", np.array([5.0]), np.array([50.0]), z)
+    d.process(1, "B", np.array([5.0]), np.array([80.0]), z)
+    d.process(2, "off", np.empty(0), np.empty(0), np.empty(0, np.uint8))
+    label, _ = d.process(3, "AB", np.array([5.0]), np.array([50.0]), z)
+    assert label[0] == "" and d.counts["AB_frames_without_reference"]["A"] == 1
+
+
+def test_nearest_in_column():
+    ru = np.array([1.0, 1.0, 2.0, 4.0])
+    rv = np.array([10.0, 30.0, 5.0, 7.0])
+    j, d = nearest_in_column(ru, rv, np.array([1.0, 1.0, 2.0, 3.0]), np.array([12.0, 26.0, 9.0, 7.0]))
+    assert list(j) == [0, 1, 2, -1]
+    np.testing.assert_allclose(d, [2.0, 4.0, 4.0, np.inf])
+
+
+def test_frames_out_of_order_rejected():
+    with pytest.raises(StageError, match="frame order"):
+        disambiguate(np.array([1, 0]), np.array([1.0, 1.0]), np.array([1.0, 2.0]),
+                     np.zeros(2, np.uint8), np.array([0, 1]), np.array(["A", "B"]))

@@ -1,0 +1,316 @@
+"""Stripe-centre extractors on synthetic frames with known centres; the PNG decoder; streaming."""
+
+from __future__ import annotations
+
+import struct
+import threading
+import zlib
+
+import cv2
+import numpy as np
+import pytest
+from scipy.special import erf
+
+from crossline.framestream import decode_png, fast_decoder_available, map_frames, read_frame
+from crossline.imageio import ImageError
+from crossline.stripes import EDGE, MERGED, SATURATED, grey_centre, steger
+
+H, W = 120, 200
+
+
+def _cdf(x, s_lo, s_hi):
+    """Integral from -inf to x of a two-sided Gaussian of unit peak (sigma s_lo left, s_hi right)."""
+    k = np.sqrt(np.pi / 2)
+    return np.where(x < 0, s_lo * k * (1 + erf(x / (np.sqrt(2) * s_lo))),
+                    s_lo * k + s_hi * k * erf(x / (np.sqrt(2) * s_hi)))
+
+
+def profile_image(centres, sigma=1.5, peak=150.0, bg=6.0, sigma_hi=None, full=255, noise=0.0,
+                  seed=0, dtype=np.uint8) -> np.ndarray:
+    """Columns holding pixel-integrated Gaussian stripes centred on rows ``centres[k][col]``.
+
+    ``sigma_hi`` (below the centre, larger rows) makes the profile asymmetric: a two-sided
+    Gaussian, whose intensity centroid (what eq. 9 estimates) is not its peak.
+    """
+    rows = np.arange(H, dtype=float)[:, None]
+    img = np.full((H, W), bg)
+    s_lo, s_hi = sigma, sigma if sigma_hi is None else sigma_hi
+    for c in centres:
+        lo, hi = rows - 0.5 - c[None, :], rows + 0.5 - c[None, :]
+        img = img + peak * (_cdf(hi, s_lo, s_hi) - _cdf(lo, s_lo, s_hi))
+    if noise:
+        img = img + np.random.default_rng(seed).normal(0, noise, img.shape)
+    return np.clip(np.round(img), 0, full).astype(dtype)
+
+
+def two_sided_centroid(c, s_lo, s_hi):
+    """Intensity centroid of a two-sided Gaussian with its peak at ``c``."""
+    return c + np.sqrt(2 / np.pi) * (s_hi**2 - s_lo**2) / (s_lo + s_hi)
+
+
+def phases(seed=1):
+    """A stripe centre per column with every sub-pixel phase."""
+    return 50.0 + np.random.default_rng(seed).uniform(0, 1, W)
+
+
+def err_of(c, truth):
+    return c["v"] - truth[c["u"].astype(int)]
+
+
+@pytest.mark.parametrize("backend", ["numba", "numpy"])
+def test_grey_centre_symmetric_is_unbiased(backend):
+    t = phases()
+    c = grey_centre(profile_image([t]), threshold=0.15, backend=backend)
+    assert c["u"].size == W
+    e = err_of(c, t)
+    assert np.sqrt(np.mean(e**2)) < 0.01
+    assert np.all(c["flags"] == 0)
+
+
+def test_grey_centre_asymmetric_gives_the_centroid():
+    t = phases()
+    c = grey_centre(profile_image([t], sigma=1.2, sigma_hi=2.0, peak=180), threshold=0.15, pad=3)
+    truth = two_sided_centroid(t, 1.2, 2.0)
+    assert np.sqrt(np.mean((c["v"] - truth[c["u"].astype(int)]) ** 2)) < 0.03
+    # a window cut at the threshold would miss the long tail: the estimate would sit ~0.2 px
+    # nearer the peak
+    assert abs(np.mean(c["v"] - t[c["u"].astype(int)])) > 0.3
+
+
+def test_grey_centre_saturated_is_centred_not_anchored():
+    t = phases()
+    img = profile_image([t], sigma=2.0, peak=900)  # flat top over ~5 rows
+    c = grey_centre(img, threshold=0.15)
+    e = err_of(c, t)
+    assert np.all(c["flags"] & SATURATED)
+    assert np.sqrt(np.mean(e**2)) < 0.03
+    # the brightest-pixel-anchored window the paper's readers often use is biased here
+    v_anchor = []
+    for col in range(W):
+        r = int(np.argmax(img[:, col]))  # first saturated pixel
+        win = np.arange(r - 3, r + 4)
+        w = img[win, col].astype(float)
+        v_anchor.append((w * win).sum() / w.sum())
+    assert np.sqrt(np.mean((np.array(v_anchor) - t) ** 2)) > 0.3
+
+
+def test_grey_centre_noise():
+    t = phases()
+    c = grey_centre(profile_image([t], noise=2.0, seed=3), threshold=0.15)
+    assert c["u"].size == W
+    assert np.sqrt(np.mean(err_of(c, t) ** 2)) < 0.04
+
+
+def test_two_stripes_close_together_are_both_found():
+    t = phases()
+    c = grey_centre(profile_image([t, t + 11.0]), threshold=0.15)
+    assert c["u"].size == 2 * W
+    top = c["v"][0::2] - t
+    bot = c["v"][1::2] - (t + 11.0)
+    assert np.sqrt(np.mean(top**2)) < 0.05 and np.sqrt(np.mean(bot**2)) < 0.05
+    assert not np.any(c["flags"] & MERGED)
+
+
+def test_merged_detected_among_normal_columns():
+    # a crossing: two stripes far apart in most columns, merged in a few
+    t = phases()
+    t2 = t.copy()
+    t2[:150] += 30.0
+    t2[150:] += 4.0
+    c = grey_centre(profile_image([t, t2]), threshold=0.15)
+    u = c["u"].astype(int)
+    assert np.all((c["flags"][u < 150] & MERGED) == 0)
+    assert np.all((c["flags"][u >= 150] & MERGED) != 0)
+
+
+def test_no_stripe():
+    img = profile_image([], noise=2.0)
+    for c in (grey_centre(img), steger(img)):
+        assert c["u"].size == 0 and set(c) >= {"u", "v", "flags", "nx", "ny", "ridge"}
+
+
+def test_edge_flag():
+    t = np.full(W, 1.0)
+    c = grey_centre(profile_image([t]), threshold=0.15)
+    assert np.all(c["flags"] & EDGE)
+
+
+def test_sixteen_bit_same_centres():
+    t = phases()
+    img8 = profile_image([t], noise=1.0)
+    img16 = img8.astype(np.uint16) * 257
+    a, b = grey_centre(img8, threshold=0.15), grey_centre(img16, threshold=0.15)
+    np.testing.assert_allclose(a["v"], b["v"], atol=1e-9)
+
+
+def test_backends_agree_on_a_crossing_frame():
+    rng = np.random.default_rng(4)
+    u = np.arange(W, dtype=float)
+    img = profile_image([60 + 0.3 * (u - 100), 60 - 0.25 * (u - 100)], noise=2.0, seed=5)
+    img[rng.integers(0, H, 50), rng.integers(0, W, 50)] = 255  # hot pixels
+    a, b = grey_centre(img, backend="numba"), grey_centre(img, backend="numpy")
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+def sloped_line_image(slope, v0, sigma=1.4, peak=160.0, noise=0.0, seed=0):
+    u = np.arange(W, dtype=float)
+    t = v0 + slope * (u - W / 2)
+    rows = np.arange(H, dtype=float)[:, None]
+    img = np.full((H, W), 6.0)
+    cos = 1 / np.sqrt(1 + slope**2)
+    sub = np.linspace(-0.45, 0.45, 10)
+    acc = sum(np.exp(-0.5 * (((rows + dv) - t[None, :]) * cos / sigma) ** 2) for dv in sub) / sub.size
+    img = img + peak * acc
+    if noise:
+        img += np.random.default_rng(seed).normal(0, noise, img.shape)
+    return np.clip(np.round(img), 0, 255).astype(np.uint8), t
+
+
+@pytest.mark.parametrize("slope", [0.0, 0.3, -0.6])
+def test_steger_sloped_line(slope):
+    img, t = sloped_line_image(slope, 60.3, noise=1.0)
+    c = steger(img, threshold=0.15, sigma=1.5)
+    inner = (c["u"] > 5) & (c["u"] < W - 6) & (c["v"] > 6) & (c["v"] < H - 7)
+    expect = np.count_nonzero((t[6:W - 6] > 7) & (t[6:W - 6] < H - 8))
+    assert inner.sum() >= 0.95 * expect
+    e = err_of(c, t)[inner]
+    assert np.sqrt(np.mean(e**2)) < 0.03
+    n_true = np.array([-slope, 1.0]) / np.hypot(slope, 1.0)
+    assert np.all(np.abs(c["nx"][inner] - n_true[0]) < 0.08)
+    assert np.all(c["ny"] > 0) and np.all(c["ridge"] > 0)
+    # one centre per column
+    assert np.unique(c["u"]).size == c["u"].size
+    # width: FWHM of the Gaussian model, 2.355 * 1.4 px (approximate: background not removed)
+    assert abs(np.median(c["width_n"][inner]) - 2.3548 * 1.4) < 0.35
+
+
+def test_steger_two_crossing_lines_far_from_the_crossing():
+    u = np.arange(W, dtype=float)
+    img1, t1 = sloped_line_image(0.3, 60.0)
+    img2, t2 = sloped_line_image(-0.25, 60.0)
+    img = np.clip(img1.astype(int) + img2.astype(int) - 6, 0, 255).astype(np.uint8)
+    c = steger(img, threshold=0.15, sigma=1.5)
+    uu = c["u"].astype(int)
+    e = np.minimum(np.abs(c["v"] - t1[uu]), np.abs(c["v"] - t2[uu]))
+    far = (np.abs(t1 - t2)[uu] > 15) & (uu > 3) & (uu < W - 4)
+    assert far.sum() > 100
+    assert np.sqrt(np.mean(e[far] ** 2)) < 0.03
+    assert np.count_nonzero(np.abs(t1 - t2)[np.unique(uu[far])] > 15) == np.unique(uu[far]).size
+    del u
+
+
+def test_steger_grey_centre_agree():
+    img, _t = sloped_line_image(0.2, 55.7, noise=0.5)
+    a, b = grey_centre(img), steger(img, sigma=1.5)
+    common = np.intersect1d(a["u"], b["u"])[3:-3]
+    va = a["v"][np.searchsorted(a["u"], common)]
+    vb = b["v"][np.searchsorted(b["u"], common)]
+    assert np.sqrt(np.mean((va - vb) ** 2)) < 0.03
+
+
+# ----------------------------------------------------------------------------- PNG decoding
+
+
+def _png(img: np.ndarray, filters: list[int]) -> bytes:
+    """A grey PNG of ``img`` whose row r uses PNG filter ``filters[r % len(filters)]``."""
+    h, w = img.shape
+    depth = 8 if img.dtype == np.uint8 else 16
+    raw = img.astype(">u2").view(np.uint8).reshape(h, -1) if depth == 16 else img
+    bpp = depth // 8
+    out = bytearray()
+    prev = np.zeros(raw.shape[1], np.int32)
+    for r in range(h):
+        x = raw[r].astype(np.int32)
+        a = np.concatenate([np.zeros(bpp, np.int32), x[:-bpp]])
+        c = np.concatenate([np.zeros(bpp, np.int32), prev[:-bpp]])
+        f = filters[r % len(filters)]
+        if f == 0:
+            y = x
+        elif f == 1:
+            y = x - a
+        elif f == 2:
+            y = x - prev
+        elif f == 3:
+            y = x - (a + prev) // 2
+        else:
+            p = a + prev - c
+            pa, pb, pc = np.abs(p - a), np.abs(p - prev), np.abs(p - c)
+            pred = np.where((pa <= pb) & (pa <= pc), a, np.where(pb <= pc, prev, c))
+            y = x - pred
+        out += bytes([f]) + (y & 255).astype(np.uint8).tobytes()
+        prev = x
+
+    def chunk(t, d):
+        return struct.pack(">I", len(d)) + t + d + struct.pack(">I", zlib.crc32(t + d) & 0xFFFFFFFF)
+
+    ihdr = struct.pack(">IIBBBBB", w, h, depth, 0, 0, 0, 0)
+    z = zlib.compress(bytes(out), 6)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", z[:100]) + chunk(b"IDAT", z[100:]) \
+        + chunk(b"IEND", b"")
+
+
+@pytest.mark.skipif(not fast_decoder_available(), reason="numba/imagecodecs not installed")
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+@pytest.mark.parametrize("filters", [[0], [1], [2], [3], [4], [0, 1, 2, 3, 4]])
+def test_fast_png_decoder_equals_opencv(dtype, filters):
+    rng = np.random.default_rng(7)
+    img = rng.integers(0, np.iinfo(dtype).max, (37, 53), dtype=np.int64).astype(dtype)
+    img[10:20] = img[10:20] // 64  # some smooth-ish rows
+    data = _png(img, filters)
+    ref = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(ref, img)
+    np.testing.assert_array_equal(decode_png(data, "x.png", "fast"), img)
+
+
+def test_decoders_agree_on_opencv_png():
+    rng = np.random.default_rng(8)
+    img = np.clip(rng.normal(20, 5, (80, 300)), 0, 255).astype(np.uint8)
+    _ok, buf = cv2.imencode(".png", img)
+    a = decode_png(buf.tobytes(), "x.png", "auto")
+    b = decode_png(buf.tobytes(), "x.png", "opencv")
+    np.testing.assert_array_equal(a, img)
+    np.testing.assert_array_equal(b, img)
+
+
+@pytest.mark.parametrize("decoder", ["auto", "opencv"])
+def test_corrupt_and_truncated_png_name_the_file(tmp_path, decoder):
+    img = np.random.default_rng(9).integers(0, 255, (40, 60)).astype(np.uint8)
+    data = _png(img, [1])
+    bad = bytearray(data)
+    bad[len(bad) // 2] ^= 0xFF
+    (tmp_path / "bad.png").write_bytes(bytes(bad))
+    (tmp_path / "cut.png").write_bytes(data[: len(data) // 2])
+    for name in ("bad.png", "cut.png"):
+        with pytest.raises(ImageError, match=name):
+            read_frame(tmp_path / name, decoder=decoder)
+    (tmp_path / "ok.png").write_bytes(data)
+    with pytest.raises(ImageError, match="expected 61x40"):
+        read_frame(tmp_path / "ok.png", shape=(40, 61), decoder=decoder)
+
+
+def test_map_frames_keeps_order_and_bounds_memory(tmp_path):
+    paths = []
+    for i in range(30):
+        img = np.full((10, 12), i, np.uint8)
+        p = tmp_path / f"{i:06d}.png"
+        cv2.imwrite(str(p), img)
+        paths.append(p)
+    live = []
+    lock = threading.Lock()
+    state = {"now": 0}
+
+    def fn(i, img):
+        with lock:
+            state["now"] += 1
+            live.append(state["now"])
+        v = int(img[0, 0])
+        with lock:
+            state["now"] -= 1
+        return i, v
+
+    out = []
+    for r in map_frames(paths, fn, threads=2, in_flight=3):
+        out.append(r)
+    assert out == [(i, i) for i in range(30)]
+    assert max(live) <= 2
