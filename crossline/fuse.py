@@ -1,0 +1,458 @@
+"""Fuse the points of a scan into one cloud: outlier removal, optional voxel grid, normals, PLY.
+
+The cloud stays in the base frame, in mm. Each point keeps its laser (A or B) and its frame,
+so that metrology can measure an artefact from each laser alone: voxel down-sampling
+therefore averages the points of each laser separately, never mixing the two.
+
+Normals are oriented towards the camera that saw the point. The camera's position in the
+base frame is recovered per frame from the points themselves: each point is known in the
+camera frame and in the base frame, and one rigid motion (Kabsch) maps the first to the
+second, its translation being the camera centre. Frames whose points are collinear (a
+single stripe on a plane) borrow the centre of the nearest frame that has one.
+
+The PLY is binary little-endian with float64 coordinates (``x y z``, then ``nx ny nz`` as
+float32, ``laser`` as uchar 1 = A / 2 = B, ``frame`` as int32); Open3D and other readers
+read it as an ordinary point cloud with normals. It is written by this module rather than
+by Open3D so that its bytes depend only on the points (no timestamp, no library version).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from crossline.atomic import atomic_path, write_json
+from crossline.errors import StageError
+
+__all__ = [
+    "LASER_CODES",
+    "FusedCloud",
+    "camera_centres",
+    "estimate_normals",
+    "fuse_cloud",
+    "make_mesh",
+    "orient_normals",
+    "read_ply",
+    "run_fuse",
+    "voxel_down_sample",
+    "write_ply",
+    "write_stl",
+]
+
+log = logging.getLogger(__name__)
+
+LASER_CODES = {"A": 1, "B": 2}
+NORMAL_MAX_NN = 100  # neighbours at most per normal: a stripe alone would give too few
+
+
+@dataclass(frozen=True)
+class FusedCloud:
+    """A fused cloud: points (N, 3) mm, normals (N, 3), laser codes (N,) and frames (N,)."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    laser: np.ndarray  # uint8: 1 = A, 2 = B, 0 = unknown
+    frame: np.ndarray  # int32: the frame the point (or the first point of its voxel) came from
+    stats: dict[str, Any] = field(default_factory=dict, compare=False)
+
+    def laser_labels(self) -> np.ndarray:
+        """Laser of each point as ``"A"``, ``"B"`` or ``"?"``."""
+        return np.array(["?", "A", "B"])[np.clip(self.laser, 0, 2)]
+
+
+# ----------------------------------------------------------------------------- geometry
+
+
+def camera_centres(
+    frame: np.ndarray, p_cam: np.ndarray, p_base: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Camera centre (base frame) per frame from points known in both frames.
+
+    Returns the sorted unique frames (F,) and their centres (F, 3); frames whose points are
+    too few or collinear get the centre of the nearest frame (by number) that has one. If no
+    frame has one, the centres are NaN.
+    """
+    frame = np.asarray(frame, dtype=np.int64)
+    frames, inv, counts = np.unique(frame, return_inverse=True, return_counts=True)
+    F = len(frames)
+    pc = np.asarray(p_cam, dtype=np.float64)
+    pb = np.asarray(p_base, dtype=np.float64)
+    def per_frame(w: np.ndarray) -> np.ndarray:
+        return np.bincount(inv, weights=w, minlength=F)
+
+    mc = np.stack([per_frame(pc[:, i]) for i in range(3)], 1) / counts[:, None]
+    mb = np.stack([per_frame(pb[:, i]) for i in range(3)], 1) / counts[:, None]
+    qc = pc - mc[inv]
+    qb = pb - mb[inv]
+    H = np.empty((F, 3, 3))
+    for i in range(3):
+        for j in range(3):
+            H[:, i, j] = per_frame(qc[:, i] * qb[:, j])
+    U, s, Vt = np.linalg.svd(H)
+    ok = (counts >= 3) & (s[:, 1] > 1e-6 * np.maximum(s[:, 0], 1e-300))
+    D = np.ones((F, 3))
+    D[:, 2] = np.sign(np.linalg.det(np.swapaxes(Vt, 1, 2) @ np.swapaxes(U, 1, 2)))
+    R = np.swapaxes(Vt, 1, 2) @ (D[:, :, None] * np.swapaxes(U, 1, 2))
+    centres = mb - np.einsum("fij,fj->fi", R, mc)
+    if not ok.any():
+        return frames, np.full((F, 3), np.nan)
+    good = np.flatnonzero(ok)
+    pos = np.searchsorted(frames[good], frames)
+    lo = good[np.clip(pos - 1, 0, len(good) - 1)]
+    hi = good[np.clip(pos, 0, len(good) - 1)]
+    nearest = np.where(np.abs(frames[hi] - frames) <= np.abs(frames - frames[lo]), hi, lo)
+    return frames, centres[nearest]
+
+
+def estimate_normals(
+    points: np.ndarray, radius: float, viewpoints: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals (N, 3) from the covariance of each point's neighbours within ``radius``.
+
+    Where the neighbours lie along a line (a lone stripe: the next stripe is farther than
+    ``radius``) the plane is undetermined; there the normal is taken as the direction to
+    the viewpoint made perpendicular to the line, or the view direction itself when there
+    are no neighbours at all. Returns the normals and the mask of those fallbacks.
+    """
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    pcd.estimate_covariances(o3d.geometry.KDTreeSearchParamHybrid(radius=float(radius),
+                                                                  max_nn=NORMAL_MAX_NN))
+    C = np.asarray(pcd.covariances)
+    w, V = np.linalg.eigh(C)
+    normals = V[:, :, 0].copy()
+    line = w[:, 1] <= 1e-4 * w[:, 2]
+    alone = w[:, 2] <= 0
+    degenerate = line | alone
+    if viewpoints is not None and degenerate.any():
+        v = viewpoints[degenerate] - points[degenerate]
+        t = V[degenerate, :, 2]
+        n = np.where(alone[degenerate, None], v, v - np.sum(v * t, axis=1, keepdims=True) * t)
+        normals[degenerate] = n / np.linalg.norm(n, axis=1, keepdims=True)
+    return normals, degenerate
+
+
+def orient_normals(
+    points: np.ndarray, normals: np.ndarray, viewpoints: np.ndarray | None
+) -> np.ndarray:
+    """Normals (N, 3) flipped to face their viewpoints (N, 3); without viewpoints, to face the
+    mean direction of the unoriented normals' dominant sign (a consistent, if arbitrary, side)."""
+    n = np.asarray(normals, dtype=np.float64).copy()
+    if viewpoints is not None and np.isfinite(viewpoints).all():
+        flip = np.sum(n * (viewpoints - points), axis=1) < 0
+    else:
+        # the dominant axis of the normals, signed so that most point to +z of the base frame
+        ref = np.linalg.svd(n, full_matrices=False)[2][0]
+        ref = ref if ref[2] >= 0 else -ref
+        flip = n @ ref < 0
+    n[flip] *= -1
+    return n
+
+
+def voxel_down_sample(
+    points: np.ndarray, laser: np.ndarray, frame: np.ndarray, voxel: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Average the points of each laser in each voxel (edge ``voxel`` mm) on one common grid.
+
+    Returns points (M, 3), laser codes (M,) and frames (M,) (the earliest frame of each
+    voxel), ordered by laser, then voxel index: the same input gives the same output.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    if len(p) == 0:
+        return p.copy(), np.asarray(laser)[:0], np.asarray(frame)[:0]
+    origin = p.min(0)
+    k = np.floor((p - origin) / voxel).astype(np.int64)
+    dims = k.max(0) + 1
+    if float(np.prod(dims.astype(np.float64))) * 4 > 2.0**62:
+        raise StageError(f"voxel size {voxel} mm is too small for a cloud of extent "
+                         f"{np.ptp(p, axis=0)} mm")
+    key = (np.asarray(laser, dtype=np.int64) * dims[0] + k[:, 0]) * dims[1] + k[:, 1]
+    key = key * dims[2] + k[:, 2]
+    uk, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
+    out = np.stack([np.bincount(inv, weights=p[:, i], minlength=len(uk)) for i in range(3)], 1)
+    out /= cnt[:, None]
+    lab = (uk // (dims[0] * dims[1] * dims[2])).astype(np.uint8)
+    fr = np.full(len(uk), np.iinfo(np.int64).max)
+    np.minimum.at(fr, inv, np.asarray(frame, dtype=np.int64))
+    return out, lab, fr.astype(np.int32)
+
+
+def fuse_cloud(
+    points: np.ndarray,
+    laser: np.ndarray,
+    frame: np.ndarray,
+    points_cam: np.ndarray | None = None,
+    *,
+    neighbours: int = 20,
+    std_ratio: float = 3.0,
+    voxel_mm: float = 0.0,
+    normal_radius_mm: float = 0.5,
+) -> FusedCloud:
+    """Statistical outlier removal, optional voxel down-sampling (per laser), oriented normals.
+
+    ``laser`` holds codes (1 = A, 2 = B) or labels ("A"/"B"); ``points_cam`` (N, 3), the same
+    points in the camera frame, orients the normals towards the camera.
+    """
+    import open3d as o3d
+
+    p = np.ascontiguousarray(points, dtype=np.float64)
+    lab = np.asarray(laser)
+    if lab.dtype.kind in "OUS":
+        lab = np.select([lab.astype(str) == "A", lab.astype(str) == "B"], [1, 2], 0)
+    lab = lab.astype(np.uint8)
+    fr = np.asarray(frame, dtype=np.int64)
+    stats: dict[str, Any] = {"n_input": len(p), "by_laser_input": _by_laser(lab)}
+    if len(p) == 0:
+        raise StageError("no points to fuse")
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
+    if neighbours > 0 and len(p) > neighbours:
+        _, ind = pcd.remove_statistical_outlier(nb_neighbors=int(neighbours), std_ratio=float(std_ratio))
+        keep = np.zeros(len(p), dtype=bool)
+        keep[np.asarray(ind, dtype=np.int64)] = True
+    else:
+        keep = np.ones(len(p), dtype=bool)
+    stats["n_outliers"] = int((~keep).sum())
+    stats["n_after_outlier_removal"] = int(keep.sum())
+    p, lab, fr = p[keep], lab[keep], fr[keep]
+    pc = None if points_cam is None else np.asarray(points_cam, dtype=np.float64)[keep]
+
+    if voxel_mm > 0:
+        vp, vlab, vfr = voxel_down_sample(p, lab, fr, voxel_mm)
+    else:
+        vp, vlab, vfr = p, lab, fr.astype(np.int32)
+    stats["n_output"] = len(vp)
+    stats["by_laser_output"] = _by_laser(vlab)
+
+    viewpoints = None
+    if pc is not None:
+        frames, centres = camera_centres(fr, pc, p)
+        if np.isfinite(centres).all():
+            viewpoints = centres[np.searchsorted(frames, vfr)]
+    normals, degenerate = estimate_normals(vp, normal_radius_mm, viewpoints)
+    normals = orient_normals(vp, normals, viewpoints)
+    stats["normals_oriented_to"] = "camera" if viewpoints is not None else "dominant direction"
+    stats["normals_from_view"] = int(degenerate.sum())
+    stats["frames"] = len(np.unique(vfr))
+    if len(vp):
+        stats["bbox_min_mm"] = vp.min(0).tolist()
+        stats["bbox_max_mm"] = vp.max(0).tolist()
+    return FusedCloud(vp, normals, vlab, vfr.astype(np.int32), stats)
+
+
+def _by_laser(codes: np.ndarray) -> dict[str, int]:
+    c = np.bincount(np.asarray(codes, dtype=np.int64), minlength=3)
+    out = {"A": int(c[1]), "B": int(c[2])}
+    if c[0]:
+        out["unknown"] = int(c[0])
+    return out
+
+
+# ----------------------------------------------------------------------------- files
+
+
+_PLY_FIELDS = [("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("nx", "<f4"), ("ny", "<f4"),
+               ("nz", "<f4"), ("laser", "u1"), ("frame", "<i4")]
+_PLY_TYPES = {"<f8": "double", "<f4": "float", "u1": "uchar", "<i4": "int"}
+_PLY_DTYPES = {"double": "<f8", "float64": "<f8", "float": "<f4", "float32": "<f4",
+               "uchar": "u1", "uint8": "u1", "char": "i1", "int8": "i1", "int": "<i4",
+               "int32": "<i4", "uint": "<u4", "uint32": "<u4", "short": "<i2", "int16": "<i2",
+               "ushort": "<u2", "uint16": "<u2"}
+
+
+def write_ply(path: str | Path, cloud: FusedCloud) -> None:
+    """Write the cloud as binary little-endian PLY, atomically; same cloud, same bytes."""
+    arr = np.empty(len(cloud.points), dtype=_PLY_FIELDS)
+    for i, k in enumerate(("x", "y", "z")):
+        arr[k] = cloud.points[:, i]
+    for i, k in enumerate(("nx", "ny", "nz")):
+        arr[k] = cloud.normals[:, i]
+    arr["laser"] = cloud.laser
+    arr["frame"] = cloud.frame
+    header = [
+        "ply",
+        "format binary_little_endian 1.0",
+        "comment crossline fused cloud: base frame, mm",
+        "comment laser: 1 = A, 2 = B, 0 = unknown; frame: first frame of the point",
+        f"element vertex {len(arr)}",
+        *(f"property {_PLY_TYPES[t]} {n}" for n, t in _PLY_FIELDS),
+        "end_header",
+    ]
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write(("\n".join(header) + "\n").encode("ascii"))
+        f.write(arr.tobytes())
+
+
+def read_ply(path: str | Path) -> dict[str, np.ndarray]:
+    """Vertex properties of a binary little-endian PLY (such as ``write_ply``'s) by name.
+
+    Returns ``{"points": (N, 3)}`` plus ``"normals"``, ``"laser"``, ``"frame"`` and any other
+    property present (as 1-D arrays). Raises ValueError for other PLY flavours.
+    """
+    path = Path(path)
+    data = path.read_bytes()
+    end = data.find(b"end_header\n")
+    if not data.startswith(b"ply\n") or end < 0:
+        raise ValueError(f"{path}: not a PLY file")
+    lines = data[:end].decode("ascii", "replace").splitlines()
+    if "format binary_little_endian 1.0" not in lines:
+        raise ValueError(f"{path}: only binary little-endian PLY is read here")
+    fields: list[tuple[str, str]] = []
+    n = 0
+    element = None
+    for ln in lines:
+        parts = ln.split()
+        if parts[:1] == ["element"]:
+            element = parts[1]
+            if element == "vertex":
+                n = int(parts[2])
+            elif fields:
+                break  # vertices come first; later elements (faces) are not read
+        elif parts[:1] == ["property"] and element == "vertex":
+            if parts[1] == "list":
+                raise ValueError(f"{path}: list properties on vertices are not supported")
+            fields.append((parts[2], _PLY_DTYPES[parts[1]]))
+    arr = np.frombuffer(data, dtype=np.dtype(fields), count=n, offset=end + len(b"end_header\n"))
+    out: dict[str, np.ndarray] = {
+        "points": np.column_stack([arr[k].astype(np.float64) for k in ("x", "y", "z")])
+    }
+    names = [f for f, _ in fields]
+    if all(k in names for k in ("nx", "ny", "nz")):
+        out["normals"] = np.column_stack([arr[k].astype(np.float64) for k in ("nx", "ny", "nz")])
+    for k in names:
+        if k not in ("x", "y", "z", "nx", "ny", "nz"):
+            out[k] = arr[k].copy()
+    return out
+
+
+def write_stl(path: str | Path, vertices: np.ndarray, triangles: np.ndarray) -> None:
+    """Write a triangle mesh as binary STL (float32, mm), atomically and byte-reproducibly."""
+    V = np.asarray(vertices, dtype=np.float64)
+    F = np.asarray(triangles, dtype=np.int64)
+    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+    nrm = np.cross(b - a, c - a)
+    ln = np.linalg.norm(nrm, axis=1, keepdims=True)
+    nrm = np.divide(nrm, ln, out=np.zeros_like(nrm), where=ln > 0)
+    rec = np.zeros(len(F), dtype=[("n", "<f4", 3), ("v", "<f4", (3, 3)), ("attr", "<u2")])
+    rec["n"] = nrm
+    rec["v"] = np.stack([a, b, c], axis=1)
+    head = b"crossline mesh, base frame, mm".ljust(80, b" ")
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write(head)
+        f.write(np.uint32(len(F)).tobytes())
+        f.write(rec.tobytes())
+
+
+def make_mesh(cloud: FusedCloud, method: str, *, threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Surface mesh (vertices, triangles) of the cloud by Poisson or ball pivoting (Open3D).
+
+    Poisson vertices farther than 3 point spacings from every point, or over the sparsest
+    support (lowest 2 % densities), are removed: Poisson closes the surface where nothing was
+    measured. Ball pivoting uses radii of 1, 2 and 4 times the median point spacing.
+    """
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud.points))
+    pcd.normals = o3d.utility.Vector3dVector(cloud.normals)
+    if method == "poisson":
+        # one thread: Open3D's parallel Poisson solver is not reproducible (different bytes
+        # from run to run with 2 threads); a mesh is an optional by-product, so bytes win
+        mesh, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
+            pcd, depth=9, n_threads=1
+        )
+        dens = np.asarray(dens)
+        # Poisson closes the surface where nothing was measured: drop what lies far from
+        # every point (beyond 3 point spacings) and the sparsest support
+        spacing = float(np.median(np.asarray(pcd.compute_nearest_neighbor_distance())))
+        dist, _ = cKDTree(cloud.points).query(np.asarray(mesh.vertices), k=1, workers=threads)
+        far = dist > 3 * spacing
+        mesh.remove_vertices_by_mask(far | (dens < np.quantile(dens, 0.02)))
+    elif method == "ball_pivoting":
+        spacing = float(np.median(np.asarray(pcd.compute_nearest_neighbor_distance())))
+        radii = o3d.utility.DoubleVector([spacing, 2 * spacing, 4 * spacing])
+        mesh = o3d.geometry.TriangleMesh.create_from_point_cloud_ball_pivoting(pcd, radii)
+    else:
+        raise ValueError(f"unknown mesh method {method!r}; expected poisson or ball_pivoting")
+    return np.asarray(mesh.vertices).copy(), np.asarray(mesh.triangles).copy()
+
+
+# ----------------------------------------------------------------------------- stage
+
+
+def run_fuse(
+    points: Path,
+    out: Path,
+    *,
+    stats: Path | None = None,
+    neighbours: int = 20,
+    std_ratio: float = 3.0,
+    voxel_mm: float = 0.0,
+    normal_radius_mm: float = 0.5,
+    mesh: str = "none",
+    mesh_out: Path | None = None,
+    threads: int = 1,
+) -> FusedCloud:
+    """The ``fuse`` stage: points parquet -> fused PLY (+ stats JSON, + STL mesh if asked)."""
+    import pandas as pd
+
+    points = Path(points)
+    if not points.is_file():
+        raise StageError(f"{points}: points file not found (run triangulate first)")
+    if mesh != "none" and mesh_out is None:
+        raise StageError(f"--mesh {mesh} needs --mesh-out (the STL to write)")
+    if neighbours < 0 or std_ratio <= 0 or voxel_mm < 0 or normal_radius_mm <= 0:
+        raise StageError(
+            f"fuse parameters out of range: neighbours={neighbours} (>= 0), std_ratio={std_ratio} "
+            f"(> 0), voxel_mm={voxel_mm} (>= 0), normal_radius_mm={normal_radius_mm} (> 0)"
+        )
+    try:
+        df = pd.read_parquet(points)
+    except Exception as exc:  # pyarrow raises several types for broken files
+        raise StageError(f"{points}: cannot be read as parquet ({exc})") from exc
+    missing = [c for c in ("x", "y", "z") if c not in df.columns]
+    if missing:
+        raise StageError(f"{points}: missing column(s) {missing}; expected frame, laser, x, y, z, ...")
+    if len(df) == 0:
+        raise StageError(f"{points}: has no points; nothing to fuse")
+    xyz = df[["x", "y", "z"]].to_numpy(np.float64)
+    finite = np.isfinite(xyz).all(1)
+    laser = df["laser"].astype(str).to_numpy() if "laser" in df else np.full(len(df), "?")
+    frame = df["frame"].to_numpy(np.int64) if "frame" in df else np.zeros(len(df), np.int64)
+    cam = None
+    if all(c in df for c in ("x_cam", "y_cam", "z_cam")):
+        cam = df[["x_cam", "y_cam", "z_cam"]].to_numpy(np.float64)[finite]
+    cloud = fuse_cloud(
+        xyz[finite], laser[finite], frame[finite], cam, neighbours=neighbours,
+        std_ratio=std_ratio, voxel_mm=voxel_mm, normal_radius_mm=normal_radius_mm,
+    )
+    cloud.stats["n_non_finite"] = int((~finite).sum())
+    cloud.stats["parameters"] = {"neighbours": neighbours, "std_ratio": std_ratio,
+                                 "voxel_mm": voxel_mm, "normal_radius_mm": normal_radius_mm,
+                                 "mesh": mesh}
+    cloud.stats["points_file"] = points.name
+    write_ply(out, cloud)
+    if mesh != "none":
+        V, F = make_mesh(cloud, mesh, threads=threads)
+        write_stl(mesh_out, V, F)
+        cloud.stats["mesh_vertices"] = len(V)
+        cloud.stats["mesh_triangles"] = len(F)
+    log.info("fused %s: %d points in, %d outliers, %d out", points.name, cloud.stats["n_input"],
+             cloud.stats["n_outliers"], cloud.stats["n_output"])
+    if stats is not None:
+        write_json(stats, cloud.stats)
+    return cloud
+
+
+def load_stats(path: str | Path) -> dict[str, Any] | None:
+    """The stats JSON of a fuse run, or None if the file is absent or unreadable."""
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None

@@ -1,0 +1,859 @@
+"""The accuracy report of a capture: every figure measured, checked and written twice.
+
+``run_report`` reads the calibrations, the points and the fused clouds of a capture,
+measures each scan's artefact (``crossline.metrology``), compares laser A with laser B,
+scores everything against ``truth.json`` when the capture is simulated, and writes
+
+- ``metrics.json``: every figure of the report, with its tolerance and PASS/FAIL, and the
+  provenance (version, commit, parameters, input checksums, capture date);
+- ``accuracy.pdf``: the same numbers as pages a metrologist reads like a calibration
+  certificate (``crossline.report_pages`` draws them from the metrics, never from anything
+  else, so the two cannot disagree).
+
+Both are deterministic: same inputs, same bytes. Nothing here depends on the clock.
+
+The configuration (``--config`` file or ``--config-json`` text) is the workflow's parameter
+set; the report reads ``report.tolerances`` and ``report.metrology`` from it (defaults
+below) and records all of it as provenance.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from crossline import __version__
+from crossline.atomic import atomic_path, to_jsonable, write_json
+from crossline.errors import CrosslineError
+
+__all__ = [
+    "DEFAULT_METROLOGY",
+    "DEFAULT_TOLERANCES",
+    "ReportData",
+    "build_report",
+    "load_config",
+    "points_per_frame",
+    "read_mesh",
+    "run_report",
+]
+
+log = logging.getLogger(__name__)
+
+FORMAT = "crossline-metrics/1"
+
+DEFAULT_TOLERANCES: dict[str, float] = {
+    "gauge_mean_error_mm": 0.003,  # |mean height − nominal|
+    "gauge_std_mm": 0.006,  # standard deviation of the heights
+    "plane_within_share": 0.99,  # share of plate points within ±plane_band_mm of the plane
+    "plane_band_mm": 0.05,  # the band of the plane histogram (the paper: ±0.05 mm)
+    "sphere_size_error_mm": 0.01,  # |fitted − nominal diameter|
+    "sphere_form_error_mm": 0.03,  # range of radial residuals (statistic: see below)
+    "ab_height_difference_mm": 0.005,  # |gauge height from A points − from B points|
+}
+
+DEFAULT_METROLOGY: dict[str, Any] = {
+    "edge_margin_mm": 1.0,  # gauge: leave out points this close to the block's edges
+    "segment_band_mm": 0.2,  # gauge: half-width of the layer of points that counts as a face
+    "sphere_ransac_mm": 0.2,  # sphere: RANSAC inlier band around the nominal sphere
+    "sphere_trim_sigma": 5.0,  # sphere: inliers re-selected at this many robust sigmas
+    "sphere_form_statistic": "all",  # which form error is checked: all | d95 | p95
+    # gauge heights referenced to the plate in the same frame ("frame", cancels the arm's pose
+    # error of each frame) or to the plate plane of the whole scan ("plane", the paper's)
+    "gauge_reference": "frame",
+    "volume_z_mm": [115.0, 185.0],  # validation: the measured volume in front of the camera
+    "freeform_max_distance_mm": 1.0,  # validation: farther from the true part = not the part's
+    "histogram_bins": 60,
+    "seed": 0,
+}
+
+FORM_KEYS = {"all": "form_error_mm", "d95": "form_error_d95_mm", "p95": "form_error_p95_mm"}
+
+
+# ----------------------------------------------------------------------------- config
+
+
+def load_config(config: str | Path | dict | None) -> tuple[dict, dict, dict]:
+    """The full parameter set, the tolerances and the metrology settings of a report.
+
+    ``config`` is a dict, a JSON file, JSON text, or None (defaults). Tolerances are read
+    from ``report.tolerances`` (or a top-level ``tolerances``), settings from
+    ``report.metrology`` (or ``metrology``); unknown keys are kept as provenance only.
+    """
+    if config is None:
+        full: dict = {}
+    elif isinstance(config, dict):
+        full = json.loads(json.dumps(config))  # a private, JSON-clean copy
+    else:
+        text = str(config)
+        path = Path(text) if len(text) < 4096 and not text.lstrip().startswith("{") else None
+        try:
+            full = json.loads(path.read_text() if path is not None else text)
+        except OSError as exc:
+            raise CrosslineError(f"{path}: cannot read the report configuration ({exc.strerror})") from exc
+        except ValueError as exc:
+            where = path if path is not None else "--config-json"
+            raise CrosslineError(f"{where}: the report configuration is not valid JSON ({exc})") from exc
+    if not isinstance(full, dict):
+        raise CrosslineError(f"the report configuration must be a JSON object, got {type(full).__name__}")
+    rep = full.get("report", {}) if isinstance(full.get("report", {}), dict) else {}
+    tol = dict(DEFAULT_TOLERANCES)
+    tol.update(rep.get("tolerances", full.get("tolerances", {})) or {})
+    met = dict(DEFAULT_METROLOGY)
+    met.update(rep.get("metrology", full.get("metrology", {})) or {})
+    if met["gauge_reference"] not in ("frame", "plane"):
+        raise ValueError(f"report.metrology.gauge_reference must be 'frame' or 'plane', "
+                         f"got {met['gauge_reference']!r}")
+    if met["sphere_form_statistic"] not in FORM_KEYS:
+        raise CrosslineError(
+            f"report.metrology.sphere_form_statistic must be one of {sorted(FORM_KEYS)}, "
+            f"got {met['sphere_form_statistic']!r}"
+        )
+    for k, v in tol.items():
+        if not isinstance(v, int | float) or isinstance(v, bool) or not math.isfinite(v) or v < 0:
+            raise CrosslineError(f"report.tolerances.{k} must be a number >= 0, got {v!r}")
+    return full, tol, met
+
+
+# ----------------------------------------------------------------------------- inputs
+
+
+def _read_json(path: Path) -> dict | None:
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as exc:
+        log.warning("%s: unreadable (%s); its section is left out", path, exc)
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def _sha256(path: Path) -> str:
+    from crossline.provenance import file_sha256
+
+    return file_sha256(path)
+
+
+def _git_commit() -> str | None:
+    try:
+        from crossline.provenance import git_commit
+
+        return git_commit()
+    except Exception:  # provenance must never stop a report
+        return None
+
+
+@dataclass
+class ScanData:
+    """What the report knows about one scan (arrays for plots included)."""
+
+    name: str
+    artefact: str
+    nominal: dict[str, float]
+    states: np.ndarray | None = None  # laser state per frame, in frame order
+    frame_ids: np.ndarray | None = None
+    point_frames: np.ndarray | None = None  # frame of each triangulated point
+    point_lasers: np.ndarray | None = None
+    cloud: dict[str, np.ndarray] | None = None  # points, normals, laser (codes), frame
+    cloud_source: str = ""
+    fuse_stats: dict | None = None
+    points_path: Path | None = None
+    points_info: dict | None = None
+    plots: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class ReportData:
+    """Everything measured for a report: the metrics (JSON) and the arrays its plots need."""
+
+    metrics: dict[str, Any]
+    plots: dict[str, Any]
+
+
+def points_per_frame(
+    frame_ids: np.ndarray, states: np.ndarray, point_frames: np.ndarray
+) -> dict[str, Any]:
+    """Points per frame, by laser state, and the gain of the cross-line over a single line.
+
+    The gain is the mean number of points per frame over all frames of the scan (every
+    frame costs the same time) divided by the mean per single-laser frame (A or B): the
+    paper's 4/3 for the pattern A, B, AB when each stripe gives the same number of points.
+    """
+    frame_ids = np.asarray(frame_ids, dtype=np.int64)
+    states = np.asarray(states).astype(str)
+    order = np.argsort(frame_ids, kind="stable")
+    frame_ids, states = frame_ids[order], states[order]
+    point_frames = np.asarray(point_frames, dtype=np.int64)
+    if len(frame_ids):
+        pos = np.clip(np.searchsorted(frame_ids, point_frames), 0, len(frame_ids) - 1)
+        known = frame_ids[pos] == point_frames
+    else:
+        pos = np.zeros(len(point_frames), dtype=np.int64)
+        known = np.zeros(len(point_frames), dtype=bool)
+    counts = np.bincount(pos[known], minlength=len(frame_ids)).astype(np.int64)
+    by_state = {}
+    for s in ("A", "B", "AB", "off"):
+        m = states == s
+        if m.any():
+            by_state[s] = {"frames": int(m.sum()), "points": int(counts[m].sum()),
+                           "points_per_frame": float(counts[m].mean())}
+    single = (states == "A") | (states == "B")
+    n = len(frame_ids)
+    out: dict[str, Any] = {
+        "frames": n,
+        "points": int(counts.sum()),
+        "points_outside_frames": int((~known).sum()),
+        "points_per_frame": float(counts.sum() / n) if n else None,
+        "by_state": by_state,
+        "points_per_single_laser_frame": float(counts[single].mean()) if single.any() else None,
+    }
+    ppf, ps = out["points_per_frame"], out["points_per_single_laser_frame"]
+    out["gain_over_single_line"] = ppf / ps if ppf is not None and ps else None
+    out["_counts"] = counts  # for the plot; removed before JSON
+    return out
+
+
+def _load_scan(
+    name: str, spec: Any, root: Path, interim: Path, processed: Path, files: list
+) -> ScanData:
+    import pandas as pd
+
+    from crossline.fuse import read_ply
+
+    sd = ScanData(name, spec.artefact, dict(spec.nominal))
+    fcsv = root / "scans" / name / "frames.csv"
+    if fcsv.is_file():
+        files.append(("capture", f"scans/{name}/frames.csv", fcsv))
+        try:
+            fr = pd.read_csv(fcsv, usecols=["frame", "lasers"], dtype={"lasers": str},
+                             keep_default_na=False)
+            sd.frame_ids = fr["frame"].to_numpy(np.int64)
+            sd.states = fr["lasers"].str.strip().to_numpy(str)
+        except (ValueError, KeyError) as exc:
+            log.warning("%s: unreadable (%s)", fcsv, exc)
+    pq = interim / "points" / f"{name}.parquet"
+    if pq.is_file():
+        sd.points_path = pq
+        files.append(("interim", f"points/{name}.parquet", pq))
+        try:
+            df = pd.read_parquet(pq, columns=["frame", "laser"])
+            sd.point_frames = df["frame"].to_numpy(np.int64)
+            lab = df["laser"].astype(str)
+            sd.point_lasers = np.select([lab == "A", lab == "B"], [1, 2], 0).astype(np.uint8)
+        except Exception as exc:  # pyarrow raises several types for broken files
+            log.warning("%s: unreadable (%s)", pq, exc)
+    side = interim / "points" / f"{name}.json"
+    if side.is_file():
+        files.append(("interim", f"points/{name}.json", side))
+        sd.points_info = _read_json(side)
+    ply = processed / f"{name}.ply"
+    if ply.is_file():
+        files.append(("processed", f"{name}.ply", ply))
+        try:
+            sd.cloud = read_ply(ply)
+            sd.cloud_source = f"{name}.ply"
+        except (ValueError, KeyError, OSError) as exc:
+            log.warning("%s: unreadable (%s)", ply, exc)
+    if sd.cloud is None and pq.is_file():
+        try:
+            df = pd.read_parquet(pq, columns=["x", "y", "z", "laser", "frame"])
+            codes = np.select([df["laser"].astype(str) == "A", df["laser"].astype(str) == "B"],
+                              [1, 2], 0).astype(np.uint8)
+            sd.cloud = {"points": df[["x", "y", "z"]].to_numpy(np.float64), "laser": codes,
+                        "frame": df["frame"].to_numpy(np.int64)}
+            sd.cloud_source = f"points/{name}.parquet (no fused cloud)"
+        except Exception as exc:
+            log.warning("%s: no usable points (%s)", pq, exc)
+    for cand in (processed / f"{name}.fuse.json", processed / f"{name}.json"):
+        if cand.is_file():
+            files.append(("processed", cand.name, cand))
+            sd.fuse_stats = _read_json(cand)
+            break
+    return sd
+
+
+# ----------------------------------------------------------------------------- checks
+
+
+def _check(
+    rows: list, cid: str, label: str, scan: str | None, value: float | None, unit: str,
+    limit: float | None, comparison: str = "<=", use_abs: bool = False, note: str = "",
+) -> None:
+    """Append one summary row: a figure, its tolerance and whether it passes."""
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        status = "N/A"
+    elif limit is None:
+        status = "INFO"
+    else:
+        v = abs(value) if use_abs else value
+        status = "PASS" if (v <= limit if comparison == "<=" else v >= limit) else "FAIL"
+    rows.append({"id": cid, "figure": label, "scan": scan, "value": value, "unit": unit,
+                 "abs": use_abs, "comparison": comparison, "tolerance": limit,
+                 "status": status, "note": note})
+
+
+# ----------------------------------------------------------------------------- measure
+
+
+def _up_vector(cloud: dict[str, np.ndarray]) -> np.ndarray | None:
+    n = cloud.get("normals")
+    if n is None or len(n) == 0:
+        return None
+    m = np.asarray(n, dtype=np.float64).mean(0)
+    norm = np.linalg.norm(m)
+    return m / norm if norm > 0.1 else None
+
+
+def _basis(up: np.ndarray) -> np.ndarray:
+    from crossline.metrology import plane_basis
+
+    return plane_basis(up)
+
+
+def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: Path,
+                  files: list) -> dict[str, Any]:
+    """The figures of one scan (counts, artefact, A vs B, truth) and its plot arrays."""
+    from crossline import metrology as mt
+
+    out: dict[str, Any] = {"artefact": sd.artefact, "nominal": sd.nominal,
+                           "cloud_source": sd.cloud_source or None}
+    counts: dict[str, Any] = {}
+    if sd.point_frames is not None:
+        counts["points"] = len(sd.point_frames)
+        nl = np.bincount(sd.point_lasers, minlength=3)
+        counts["points_by_laser"] = {"A": int(nl[1]), "B": int(nl[2])}
+        if nl[0]:
+            counts["points_by_laser"]["other"] = int(nl[0])
+    if sd.frame_ids is not None and sd.point_frames is not None:
+        ppf = points_per_frame(sd.frame_ids, sd.states, sd.point_frames)
+        sd.plots["frame_counts"] = ppf.pop("_counts")
+        sd.plots["frame_states"] = np.asarray(sd.states)[np.argsort(sd.frame_ids, kind="stable")]
+        counts.update(ppf)
+    elif sd.frame_ids is not None:
+        counts["frames"] = len(sd.frame_ids)
+    if sd.fuse_stats:
+        fs = sd.fuse_stats
+        counts["fused"] = {k: fs[k] for k in ("n_input", "n_outliers", "n_after_outlier_removal",
+                                              "n_output") if k in fs}
+        if isinstance(fs.get("parameters"), dict):
+            counts["fused"]["parameters"] = fs["parameters"]
+    if sd.points_info:
+        counts["triangulation"] = sd.points_info
+    out["counts"] = counts
+    if sd.cloud is None or len(sd.cloud["points"]) == 0:
+        out["error"] = "no points (neither a fused cloud nor a points file)"
+        return out
+
+    P = sd.cloud["points"]
+    labels = np.asarray(sd.cloud.get("laser", np.zeros(len(P), np.uint8))).astype(np.uint8)
+    out["cloud_points"] = len(P)
+    up = _up_vector(sd.cloud)
+    seed = int(met["seed"])
+    band = float(tol["plane_band_mm"])
+    bins = int(met["histogram_bins"])
+    tscan = (truth or {}).get("scans", {}).get(sd.name) if truth else None
+    sd.plots["hist"] = None
+    height_ref: tuple[np.ndarray, float] | None = None  # plane the top view's height is from
+    try:
+        if sd.artefact == "gauge_block":
+            nominal = float(sd.nominal.get("height", np.nan))
+            frames = sd.cloud.get("frame") if met["gauge_reference"] == "frame" else None
+            g = mt.measure_gauge_block(P, nominal, edge_margin_mm=float(met["edge_margin_mm"]),
+                                       band_mm=float(met["segment_band_mm"]), up=up, seed=seed,
+                                       frame=frames)
+            f = g.figures()
+            out["measurement"] = f
+            out["a_vs_b"] = _ab(mt.compare_lasers, "gauge_block", P, labels, out, gauge=g)
+            sd.plots["hist"] = {"values": g.heights, "xlabel": "height above the plate plane (mm)",
+                                "nominal": nominal, "bins": bins, "kind": "gauge"}
+            height_ref = (g.plate_normal, g.plate_d)
+            if tscan:
+                out["truth"] = _gauge_truth(g, P, tscan, nominal)
+        elif sd.artefact == "plane":
+            r = mt.measure_plane(P, band_mm=band, up=up)
+            out["measurement"] = r.figures()
+            out["a_vs_b"] = _ab(mt.compare_lasers, "plane", P, labels, out, plane=r, band_mm=band)
+            sd.plots["hist"] = {"values": r.distances, "xlabel": "distance to the fitted plane (mm)",
+                                "band": band, "bins": bins, "kind": "plane"}
+            height_ref = (r.normal, r.d)
+            if tscan and "plane_base" in tscan:
+                nt, dt = _plane4(tscan["plane_base"], r.normal)
+                dev = P @ nt + dt
+                out["truth"] = {"distance_to_true_plane": mt.deviation_stats(dev, band),
+                                "normal_angle_deg": float(np.degrees(
+                                    mt.angle_between(nt, r.normal)))}
+        elif sd.artefact == "sphere":
+            nominal = float(sd.nominal.get("diameter", np.nan))
+            s = mt.measure_sphere(P, nominal, ransac_threshold_mm=float(met["sphere_ransac_mm"]),
+                                  trim_sigma=float(met["sphere_trim_sigma"]), seed=seed)
+            out["measurement"] = s.figures()
+            out["a_vs_b"] = _ab(mt.compare_lasers, "sphere", P, labels, out, sphere=s)
+            views = _viewpoints(sd)
+            if views is not None:
+                out["incidence"] = mt.sphere_by_incidence(P, s, views)
+            sd.plots["hist"] = {"values": s.residuals, "xlabel": "radial residual (mm)",
+                                "bins": bins, "kind": "sphere"}
+            if tscan:
+                t: dict[str, Any] = {}
+                if "center_base" in tscan:
+                    dc = s.centre - np.asarray(tscan["center_base"], dtype=np.float64)
+                    t["centre_error_mm"] = dc.tolist()
+                    t["centre_distance_mm"] = float(np.linalg.norm(dc))
+                if "diameter" in tscan:
+                    t["true_diameter_mm"] = float(tscan["diameter"])
+                    t["diameter_error_mm"] = 2 * s.radius - float(tscan["diameter"])
+                out["truth"] = t
+        elif sd.artefact == "freeform":
+            out["measurement"] = {"n": len(P)}
+            if tscan and "mesh" in tscan:
+                dev = _mesh_deviation(P, root / str(tscan["mesh"]), files, towards=up)
+                if dev is not None:
+                    # the part stands on the table, which the stripes cross too: points nearer
+                    # the table plane than the part, or farther from the part than
+                    # freeform_max_distance_mm, are not the part's and are counted apart
+                    on = np.abs(dev) <= float(met["freeform_max_distance_mm"])
+                    n_table = 0
+                    if isinstance(truth.get("table_z_base"), int | float):
+                        table = np.abs(P[:, 2] - float(truth["table_z_base"])) < np.abs(dev)
+                        n_table = int(table.sum())
+                        on &= ~table
+                    stats = mt.deviation_stats(dev[on], band)
+                    stats.update(n_total=len(P), n_table=n_table,
+                                 n_off_part=int(len(P) - on.sum() - n_table),
+                                 max_distance_mm=float(met["freeform_max_distance_mm"]))
+                    out["truth"] = {"deviation_to_true_mesh": stats}
+                    sd.plots["deviation"] = dev[on]
+                    sd.plots["deviation_mask"] = on
+                    sd.plots["hist"] = {"values": dev[on], "xlabel": "signed distance to the true "
+                                        "surface (mm)", "band": band, "bins": bins,
+                                        "kind": "freeform"}
+    except ValueError as exc:
+        out["error"] = str(exc)
+        log.warning("scan %s: %s", sd.name, exc)
+
+    # top view, coloured by height (above the artefact's reference plane, else along `up`)
+    if height_ref is not None:
+        n, d = height_ref
+        heights = P @ n + d
+        axis = n
+    else:
+        axis = up if up is not None else np.array([0.0, 0.0, 1.0])
+        heights = P @ axis
+        heights = heights - np.percentile(heights, 0.5)
+    B = _basis(axis)
+    sd.plots["top"] = {"xy": P @ B.T, "h": heights}
+    return out
+
+
+def _viewpoints(sd: ScanData) -> np.ndarray | None:
+    """The camera centre (base frame) that saw each cloud point, from the points file."""
+    import pandas as pd
+
+    from crossline.fuse import camera_centres
+
+    if sd.points_path is None or sd.cloud is None or "frame" not in sd.cloud:
+        return None
+    try:
+        df = pd.read_parquet(sd.points_path, columns=["frame", "x_cam", "y_cam", "z_cam",
+                                                      "x", "y", "z"])
+    except Exception:  # an older points file without camera coordinates: no incidence
+        return None
+    frames, centres = camera_centres(df["frame"].to_numpy(np.int64),
+                                     df[["x_cam", "y_cam", "z_cam"]].to_numpy(np.float64),
+                                     df[["x", "y", "z"]].to_numpy(np.float64))
+    fr = np.asarray(sd.cloud["frame"], dtype=np.int64)
+    pos = np.clip(np.searchsorted(frames, fr), 0, len(frames) - 1)
+    if not np.isfinite(centres).all() or not (frames[pos] == fr).all():
+        return None
+    return centres[pos]
+
+
+def _ab(fn: Any, art: str, P: np.ndarray, labels: np.ndarray, out: dict, **kw: Any) -> dict | None:
+    """Laser A against laser B, or None with the reason in ``out["a_vs_b_error"]``."""
+    try:
+        ab = fn(art, P, labels, **kw)
+    except ValueError as exc:
+        out["a_vs_b_error"] = str(exc)
+        return None
+    if ab is None:
+        out["a_vs_b_error"] = "too few points of one laser on the artefact"
+        return None
+    return ab.figures()
+
+
+def _plane4(v: list, like: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    n = np.asarray(v[:3], dtype=np.float64)
+    s = np.linalg.norm(n)
+    n, d = n / s, float(v[3]) / s
+    if like is not None and float(n @ like) < 0:
+        n, d = -n, -d
+    return n, d
+
+
+def _gauge_truth(g: Any, P: np.ndarray, tscan: dict, nominal: float) -> dict[str, Any]:
+    from crossline import metrology as mt
+
+    t: dict[str, Any] = {"true_height_mm": float(tscan.get("height", nominal))}
+    f = g.figures()
+    t["mean_error_mm"] = f["mean_mm"] - t["true_height_mm"]
+    t["central_length_error_mm"] = f["central_length_mm"] - t["true_height_mm"]
+    if "plate_plane_base" in tscan:
+        nt, dt = _plane4(tscan["plate_plane_base"], g.plate_normal)
+        h = P[g.top_mask] @ nt + dt
+        t["heights_over_true_plate"] = {"mean_mm": float(h.mean()),
+                                        "std_mm": float(h.std(ddof=1)) if h.size > 1 else 0.0,
+                                        "error_mm": float(h.mean()) - t["true_height_mm"]}
+        dev = P[g.plate_mask] @ nt + dt
+        t["plate_points_to_true_plate"] = mt.deviation_stats(dev)
+        t["plate_normal_angle_deg"] = float(np.degrees(mt.angle_between(nt, g.plate_normal)))
+    if "top_plane_base" in tscan:
+        nt, dt = _plane4(tscan["top_plane_base"], g.plate_normal)
+        t["top_points_to_true_top"] = mt.deviation_stats(P[g.top_mask] @ nt + dt)
+    return t
+
+
+def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (float64) and triangles of a PLY mesh.
+
+    Binary little-endian PLYs with ``double``/``float`` x, y, z and ``list uchar int``
+    triangles (as the simulator writes them) are read exactly here; anything else through
+    Open3D.
+    """
+    data = path.read_bytes()
+    end = data.find(b"end_header\n")
+    head = data[:end].decode("ascii", "replace").splitlines() if end > 0 else []
+    if "format binary_little_endian 1.0" in head:
+        nv = nf = 0
+        vprops: list[tuple[str, str]] = []
+        flist = None
+        element = None
+        types = {"double": "<f8", "float": "<f4", "float64": "<f8", "float32": "<f4",
+                 "uchar": "u1", "uint8": "u1", "int": "<i4", "int32": "<i4", "uint": "<u4",
+                 "uint32": "<u4"}
+        ok = True
+        for ln in head:
+            w = ln.split()
+            if w[:1] == ["element"]:
+                element = w[1]
+                if element == "vertex":
+                    nv = int(w[2])
+                elif element == "face":
+                    nf = int(w[2])
+                else:
+                    ok = False
+            elif w[:1] == ["property"] and element == "vertex":
+                ok &= w[1] in types
+                vprops.append((w[-1], types.get(w[1], "u1")))
+            elif w[:2] == ["property", "list"] and element == "face":
+                flist = (types.get(w[2]), types.get(w[3]))
+        if ok and flist is not None and None not in flist and {"x", "y", "z"} <= {n for n, _ in vprops}:
+            off = end + len(b"end_header\n")
+            vt = np.dtype(vprops)
+            V = np.frombuffer(data, vt, nv, off)
+            ft = np.dtype([("n", flist[0]), ("i", flist[1], (3,))])
+            F = np.frombuffer(data, ft, nf, off + nv * vt.itemsize)
+            if (F["n"] == 3).all():
+                return (np.column_stack([V[k].astype(np.float64) for k in "xyz"]),
+                        F["i"].astype(np.int64))
+    import open3d as o3d
+
+    mesh = o3d.io.read_triangle_mesh(str(path))
+    return np.asarray(mesh.vertices).copy(), np.asarray(mesh.triangles).copy()
+
+
+def _mesh_deviation(P: np.ndarray, path: Path, files: list,
+                    towards: np.ndarray | None = None) -> np.ndarray | None:
+    """Signed distance of the points to the true mesh, positive outside (towards the scanner)."""
+    from crossline.metrology import mesh_signed_distance
+
+    if not path.is_file():
+        log.warning("%s: the true mesh is missing; no freeform validation", path)
+        return None
+    files.append(("capture", str(path.name if path.parent.name != "truth" else
+                                 f"truth/{path.name}"), path))
+    V, F = read_mesh(path)
+    if len(F) == 0:
+        log.warning("%s: the true mesh has no triangles", path)
+        return None
+    dev = mesh_signed_distance(P, V, F)
+    if towards is not None:
+        # the scanner sees the outside: if the triangles' area-weighted normal points away
+        # from it, the mesh is wound inwards and the sign is flipped
+        a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+        if float(np.cross(b - a, c - a).sum(0) @ towards) < 0:
+            dev = -dev
+    return dev
+
+
+def _calibration(inputs: dict[str, dict | None]) -> dict[str, Any]:
+    """Calibration figures as stored by the calibration stages (whatever keys they have)."""
+    from crossline.geometry import angle_between, matrix_to_rotvec, rotation_angle
+
+    cal: dict[str, Any] = {}
+    cam = inputs.get("camera")
+    if cam and "K" in cam:
+        K = np.asarray(cam["K"], dtype=np.float64)
+        c = {"fx_px": K[0, 0], "fy_px": K[1, 1], "cx_px": K[0, 2], "cy_px": K[1, 2],
+             "skew": K[0, 1], "dist": list(np.asarray(cam.get("dist", [np.nan] * 5), float)),
+             "image_size": cam.get("image_size"), "rms_px": cam.get("rms_px")}
+        views = cam.get("views")
+        if isinstance(views, list):
+            c["views"] = [{"image": str(v.get("image", i)), "used": bool(v.get("used", True)),
+                           "reason": v.get("reason"), "rms_px": v.get("rms_px")}
+                          for i, v in enumerate(views) if isinstance(v, dict)]
+            c["views_used"] = sum(v["used"] for v in c["views"])
+        for k in ("bias_correction", "n_points"):
+            if k in cam and not isinstance(cam[k], list | dict):
+                c[k] = cam[k]
+            elif isinstance(cam.get(k), dict):  # keep its figures, not its history
+                c[k] = {kk: v for kk, v in cam[k].items() if isinstance(v, bool | int | float | str)}
+        cal["camera"] = c
+    las = inputs.get("lasers")
+    if las and "A" in las and "B" in las:
+        out: dict[str, Any] = {}
+        for L in ("A", "B"):
+            pl = las[L]
+            n = np.asarray(pl["normal"], dtype=np.float64)
+            e = {"normal": (n / np.linalg.norm(n)).tolist(), "d_mm": float(pl["d"]) / np.linalg.norm(n)}
+            for k, v in pl.items():
+                if k not in ("normal", "d") and isinstance(v, int | float) and not isinstance(v, bool):
+                    e[k] = v
+            out[L] = e
+        out["angle_AB_deg"] = float(las.get("angle_AB_deg", np.degrees(angle_between(
+            np.asarray(out["A"]["normal"]), np.asarray(out["B"]["normal"])))))
+        cal["lasers"] = out
+    he = inputs.get("handeye")
+    if he and "T_tool_cam" in he:
+        X = np.asarray(he["T_tool_cam"], dtype=np.float64)
+        h: dict[str, Any] = {"method": he.get("method"), "T_tool_cam": X.tolist()}
+        for k, v in he.items():
+            if isinstance(v, int | float) and not isinstance(v, bool):
+                h[k] = v
+        methods = {}
+        for name, m in sorted((he.get("methods") or {}).items()):
+            if not isinstance(m, dict):
+                continue
+            Xm = m.get("T_tool_cam", m.get("X"))
+            e = {k: v for k, v in m.items() if isinstance(v, int | float) and not isinstance(v, bool)}
+            if isinstance(m.get("error"), str):
+                e["error"] = m["error"]
+            if Xm is not None:
+                Xm = np.asarray(Xm, dtype=np.float64)
+                if Xm.shape == (4, 4):
+                    e["T_tool_cam"] = Xm.tolist()
+                    e["rotvec_deg"] = np.degrees(matrix_to_rotvec(Xm[:3, :3])).tolist()
+                    D = np.linalg.inv(X) @ Xm
+                    e["vs_chosen_rotation_deg"] = float(np.degrees(rotation_angle(D[:3, :3])))
+                    e["vs_chosen_translation_mm"] = float(np.linalg.norm(Xm[:3, 3] - X[:3, 3]))
+            methods[name] = e
+        h["methods"] = methods
+        pairs = he.get("pairs")
+        if isinstance(pairs, dict):
+            h["pairs"] = {k: v for k, v in pairs.items()
+                          if isinstance(v, int | float) and not isinstance(v, bool)}
+        h["rotvec_deg"] = np.degrees(matrix_to_rotvec(X[:3, :3])).tolist()
+        cal["handeye"] = h
+    return cal
+
+
+def _validation(inputs: dict, truth: dict, rig: Any, met: dict) -> dict[str, Any]:
+    """Calibration errors against the simulator's truth, over the measured volume."""
+    from crossline import metrology as mt
+    from crossline.camera import Camera
+
+    v: dict[str, Any] = {"volume_z_mm": list(met["volume_z_mm"])}
+    z = tuple(float(x) for x in met["volume_z_mm"])
+    true_cam = None
+    region = None
+    if rig is not None and getattr(rig, "scan_window", None) is not None:
+        w = rig.scan_window
+        region = (w.x, w.y, w.width, w.height)
+        v["volume_region_px"] = list(region)
+    tc = truth.get("camera") or {}
+    if "K" in tc:
+        size = tc.get("image_size")
+        if size is None and rig is not None:
+            size = (rig.sensor.width, rig.sensor.height)
+        true_cam = Camera(np.asarray(tc["K"]), np.asarray(tc.get("dist", [0] * 5)), tuple(size))
+    vol = mt.volume_points(true_cam, z_range=z, region=region) if true_cam is not None else None
+    cam = inputs.get("camera")
+    if cam and true_cam is not None and "K" in cam:
+        est = Camera(np.asarray(cam["K"]), np.asarray(cam["dist"]), tuple(cam["image_size"]))
+        v["camera"] = mt.camera_error(est, true_cam, vol)
+    las = inputs.get("lasers")
+    tl = truth.get("lasers") or {}
+    if las and true_cam is not None:
+        v["lasers"] = {}
+        for L in ("A", "B"):
+            if L in las and L in tl:
+                v["lasers"][L] = mt.laser_plane_error(
+                    (las[L]["normal"], las[L]["d"]), (tl[L]["normal"], tl[L]["d"]), true_cam,
+                    z_range=z, region=region)
+        if "A" in tl and "B" in tl and "A" in las and "B" in las:
+            ang_t = float(np.degrees(mt.angle_between(np.asarray(tl["A"]["normal"], float),
+                                                      np.asarray(tl["B"]["normal"], float))))
+            ang_e = float(np.degrees(mt.angle_between(np.asarray(las["A"]["normal"], float),
+                                                      np.asarray(las["B"]["normal"], float))))
+            v["lasers"]["angle_AB_error_deg"] = ang_e - ang_t
+    he = inputs.get("handeye")
+    if he and "T_tool_cam" in truth and vol is not None:
+        Tt = np.asarray(truth["T_tool_cam"], dtype=np.float64)
+        h = {"chosen": mt.transform_error(np.asarray(he["T_tool_cam"]), Tt, vol),
+             "method": he.get("method")}
+        for name, m in sorted((he.get("methods") or {}).items()):
+            Xm = m.get("T_tool_cam", m.get("X")) if isinstance(m, dict) else None
+            if Xm is not None and np.asarray(Xm).shape == (4, 4):
+                h[name] = mt.transform_error(np.asarray(Xm, dtype=np.float64), Tt, vol)
+        v["handeye"] = h
+    return v
+
+
+# ----------------------------------------------------------------------------- build
+
+
+def build_report(
+    capture: Path, interim_dir: Path, processed_dir: Path, config: Any = None
+) -> ReportData:
+    """Measure everything a report shows; return the metrics (JSON-ready) and plot arrays."""
+    from crossline.capture import read_rig
+
+    capture, interim_dir, processed_dir = Path(capture), Path(interim_dir), Path(processed_dir)
+    full, tol, met = load_config(config)
+    rig = read_rig(capture / "rig.yaml")
+    files: list[tuple[str, str, Path]] = [("capture", "rig.yaml", capture / "rig.yaml")]
+    for rel in ("calibration/handeye/poses.csv",):
+        if (capture / rel).is_file():
+            files.append(("capture", rel, capture / rel))
+    truth = None
+    if (capture / "truth.json").is_file():
+        files.append(("capture", "truth.json", capture / "truth.json"))
+        truth = _read_json(capture / "truth.json")
+    inputs: dict[str, dict | None] = {}
+    for k in ("camera", "lasers", "handeye"):
+        p = interim_dir / "calibration" / f"{k}.json"
+        if p.is_file():
+            files.append(("interim", f"calibration/{k}.json", p))
+        inputs[k] = _read_json(p)
+    if (interim_dir / "check.json").is_file():
+        files.append(("interim", "check.json", interim_dir / "check.json"))
+
+    date = rig.extra.get("capture_date")
+    metrics: dict[str, Any] = {
+        "format": FORMAT,
+        "capture": {"name": capture.name, "date": str(date) if date is not None else None,
+                    "simulated": truth is not None, "scans": sorted(rig.scans)},
+        "software": {"crossline_version": __version__, "git_commit": _git_commit()},
+    }
+    plots: dict[str, Any] = {"scans": {}}
+    cal = _calibration(inputs)
+    metrics["calibration"] = cal
+    plots["camera_raw"] = inputs.get("camera")
+    plots["lasers_raw"] = inputs.get("lasers")
+    plots["handeye_raw"] = inputs.get("handeye")
+    plots["rig"] = rig
+
+    rows: list[dict[str, Any]] = []
+    scans: dict[str, Any] = {}
+    form_key = FORM_KEYS[met["sphere_form_statistic"]]
+    for name in sorted(rig.scans):
+        sd = _load_scan(name, rig.scans[name], capture, interim_dir, processed_dir, files)
+        s = _measure_scan(sd, tol, met, truth, capture, files)
+        scans[name] = s
+        plots["scans"][name] = sd.plots
+        m = s.get("measurement") or {}
+        ab = (s.get("a_vs_b") or {}).get("A_minus_B", {})
+        err = s.get("error", "")
+        if sd.artefact == "gauge_block":
+            _check(rows, "gauge_mean_error_mm", "gauge height: mean − nominal", name,
+                   m.get("error_mm"), "mm", tol["gauge_mean_error_mm"], use_abs=True, note=err)
+            _check(rows, "gauge_std_mm", "gauge height: standard deviation", name,
+                   m.get("std_mm"), "mm", tol["gauge_std_mm"], note=err)
+            if "plane_reference_std_mm" in m:
+                _check(rows, "gauge_plane_reference_error_mm",
+                       "gauge height, paper's method: mean − nominal", name,
+                       m.get("plane_reference_error_mm"), "mm", None)
+                _check(rows, "gauge_plane_reference_std_mm",
+                       "gauge height, paper's method: std", name,
+                       m.get("plane_reference_std_mm"), "mm", None)
+            _check(rows, "ab_height_difference_mm", "gauge height: laser A − laser B", name,
+                   ab.get("height_mm"), "mm", tol["ab_height_difference_mm"], use_abs=True,
+                   note=err or ("" if ab else s.get("a_vs_b_error", "")))
+        elif sd.artefact == "plane":
+            _check(rows, "plane_within_share", f"plane: share within ±{tol['plane_band_mm']:g} mm",
+                   name, m.get("share_within_band"), "%", tol["plane_within_share"],
+                   comparison=">=", note=err)
+            _check(rows, "plane_flatness_95_mm", "plane: flatness (2.5–97.5 %)", name,
+                   m.get("flatness_95_mm"), "mm", None, note=err)
+        elif sd.artefact == "sphere":
+            _check(rows, "sphere_size_error_mm", "sphere: size error (PSize)", name,
+                   m.get("size_error_mm"), "mm", tol["sphere_size_error_mm"], use_abs=True,
+                   note=err)
+            label = {"all": "all points", "d95": "D95 %", "p95": "2.5–97.5 %"}[
+                met["sphere_form_statistic"]]
+            _check(rows, "sphere_form_error_mm", f"sphere: form error (PForm, {label})", name,
+                   m.get(form_key), "mm", tol["sphere_form_error_mm"], note=err)
+            if met["sphere_form_statistic"] != "d95":
+                _check(rows, "sphere_form_error_d95_mm",
+                       "sphere: form error, D95 % (ISO 10360-13)", name,
+                       m.get(FORM_KEYS["d95"]), "mm", None, note=err)
+            _check(rows, "ab_diameter_difference_mm", "sphere: diameter A − B", name,
+                   ab.get("diameter_mm"), "mm", None, note=err)
+            inc = s.get("incidence") or {}
+            if "size_error_steep_mm" in inc:
+                _check(rows, "sphere_size_error_steep_mm",
+                       f"sphere: size error, incidence ≤ {inc['max_incidence_deg']:.0f}°", name,
+                       inc["size_error_steep_mm"], "mm", None, use_abs=True)
+        elif sd.artefact == "freeform":
+            dev = (s.get("truth") or {}).get("deviation_to_true_mesh")
+            if dev:
+                _check(rows, "freeform_rms_mm", "freeform: RMS deviation from true surface",
+                       name, dev.get("rms_mm"), "mm", None)
+    metrics["summary"] = rows
+    statuses = [r["status"] for r in rows]
+    if "FAIL" in statuses:
+        overall = "FAIL"
+    elif "N/A" in statuses or not any(s == "PASS" for s in statuses):
+        overall = "INCOMPLETE"
+    else:
+        overall = "PASS"
+    metrics["result"] = overall
+    metrics["scans"] = scans
+    metrics["validation"] = _validation(inputs, truth, rig, met) if truth else None
+    files_out = []
+    for root_label, rel, path in sorted(set(files), key=lambda f: (f[0], f[1])):
+        files_out.append({"root": root_label, "file": rel, "sha256": _sha256(path),
+                          "bytes": path.stat().st_size})
+    metrics["provenance"] = {
+        "crossline_version": __version__,
+        "git_commit": metrics["software"]["git_commit"],
+        "capture_date": metrics["capture"]["date"],
+        "tolerances": tol,
+        "metrology": met,
+        "parameters": full,
+        "inputs": files_out,
+    }
+    return ReportData(to_jsonable(metrics), plots)
+
+
+def run_report(
+    capture: Path, interim_dir: Path, processed_dir: Path, pdf: Path, metrics: Path, *,
+    config: Any = None,
+) -> dict[str, Any]:
+    """The ``report`` stage: measure, then write ``metrics.json`` and ``accuracy.pdf``."""
+    from crossline.report_pages import render_pdf
+
+    capture = Path(capture)
+    if not (capture / "rig.yaml").is_file():
+        raise CrosslineError(f"{capture}: not a capture folder (no rig.yaml)")
+    data = build_report(capture, interim_dir, processed_dir, config)
+    with atomic_path(pdf) as tmp:
+        render_pdf(data, tmp)
+    write_json(metrics, data.metrics)
+    log.info("report %s: %s", capture.name, data.metrics["result"])
+    return data.metrics

@@ -1,0 +1,171 @@
+"""The fuse stage: outlier removal and counts, per-laser voxels, oriented normals, byte-stable files."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import numpy as np
+import open3d as o3d
+import pandas as pd
+import pytest
+
+from crossline.atomic import write_parquet
+from crossline.errors import StageError
+from crossline.fuse import (
+    camera_centres,
+    fuse_cloud,
+    read_ply,
+    run_fuse,
+    voxel_down_sample,
+)
+from crossline.geometry import invert_transform, make_transform, rotvec_to_matrix, transform_points
+from tests.test_report_synthetic import scan_points, scene
+
+
+@pytest.fixture(scope="module")
+def plate_scan():
+    """A small synthetic cross-line scan of a plate, in an arbitrary base pose, with noise."""
+    T = make_transform(rotvec_to_matrix([0.1, -0.2, 0.7]), [250.0, -80.0, 40.0])
+    df, Ts, _ = scan_points(scene("plane")[0], frames=45, rays=200, noise=0.003, seed=1,
+                                 T_scene=T)
+    return df, Ts, T
+
+
+def _sha(path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_camera_centres_recovered_exactly():
+    rng = np.random.default_rng(0)
+    frames, pc, pb, centres = [], [], [], {}
+    for f in (3, 4, 7, 8):
+        T = make_transform(rotvec_to_matrix(rng.normal(size=3)), rng.uniform(-200, 200, 3))
+        if f == 7:  # collinear points: this frame borrows its neighbour's centre
+            p = np.outer(rng.uniform(-10, 10, 50), [1.0, 0.5, 0.2]) + np.array([0, 0, 150.0])
+        else:
+            p = rng.uniform([-20, -20, 120], [20, 20, 180], (50, 3))
+        frames.append(np.full(50, f))
+        pc.append(p)
+        pb.append(transform_points(T, p))
+        centres[f] = T[:3, 3]
+    fr, c = camera_centres(np.concatenate(frames), np.vstack(pc), np.vstack(pb))
+    assert fr.tolist() == [3, 4, 7, 8]
+    for i, f in enumerate(fr):
+        want = centres[8] if f == 7 else centres[f]
+        assert np.linalg.norm(c[i] - want) < 1e-8
+
+
+def test_voxels_keep_lasers_apart():
+    p = np.array([[0.1, 0.1, 0.1], [0.3, 0.1, 0.1], [0.2, 0.2, 0.2], [1.5, 0.1, 0.1]])
+    lab = np.array([1, 1, 2, 1], dtype=np.uint8)
+    fr = np.array([5, 3, 4, 9])
+    vp, vl, vf = voxel_down_sample(p, lab, fr, 1.0)
+    # voxel (0,0,0) holds two A points and one B point: two averaged points, never mixed
+    assert vl.tolist() == [1, 1, 2]
+    assert np.allclose(vp[0], [0.2, 0.1, 0.1]) and vf[0] == 3
+    assert np.allclose(vp[1], [1.5, 0.1, 0.1]) and vf[1] == 9
+    assert np.allclose(vp[2], [0.2, 0.2, 0.2]) and vf[2] == 4
+
+
+def test_outliers_removed_and_counted(plate_scan):
+    df, _, T = plate_scan
+    rng = np.random.default_rng(2)
+    n_out = 40
+    # isolated points 8-15 mm off the plate (the stripes of this small scan lie ~1 mm apart)
+    base = df[["x", "y", "z"]].to_numpy()[rng.choice(len(df), n_out, replace=False)]
+    far = base + T[:3, 2] * rng.uniform(8, 15, n_out)[:, None]
+    pts = np.vstack([df[["x", "y", "z"]].to_numpy(), far])
+    lab = np.concatenate([df["laser"].to_numpy(), np.full(n_out, "A")])
+    fr = np.concatenate([df["frame"].to_numpy(), np.zeros(n_out, int)])
+    c = fuse_cloud(pts, lab, fr, neighbours=20, std_ratio=3.0)
+    s = c.stats
+    assert s["n_input"] == len(pts) == s["n_outliers"] + s["n_after_outlier_removal"]
+    assert s["n_output"] == len(c.points) == s["n_after_outlier_removal"]
+    # every planted outlier is gone, and almost nothing else
+    d = np.abs((c.points - T[:3, 3]) @ T[:3, 2])
+    assert d.max() < 0.05
+    assert s["n_outliers"] - n_out < 0.01 * len(df)
+    assert s["by_laser_input"]["A"] + s["by_laser_input"]["B"] == len(pts)
+
+
+def test_normals_face_the_camera(plate_scan):
+    df, Ts, T = plate_scan
+    c = fuse_cloud(df[["x", "y", "z"]].to_numpy(), df["laser"].to_numpy(), df["frame"].to_numpy(),
+                   df[["x_cam", "y_cam", "z_cam"]].to_numpy(), normal_radius_mm=0.8)
+    assert c.stats["normals_oriented_to"] == "camera"
+    cam = Ts[c.frame, :3, 3]
+    assert (np.sum(c.normals * (cam - c.points), axis=1) > 0).all()
+    # the plate's normal, +z of the scene (the camera looks down on it)
+    assert np.median(c.normals @ T[:3, 2]) > 0.999
+
+
+def test_run_fuse_files_are_deterministic(plate_scan, tmp_path):
+    df, _, _ = plate_scan
+    pq = tmp_path / "plate.parquet"
+    write_parquet(pq, df)
+    a = run_fuse(pq, tmp_path / "a.ply", stats=tmp_path / "a.json", mesh="ball_pivoting",
+                 mesh_out=tmp_path / "a.stl")
+    run_fuse(pq, tmp_path / "b.ply", stats=tmp_path / "b.json", mesh="ball_pivoting",
+             mesh_out=tmp_path / "b.stl")
+    assert _sha(tmp_path / "a.ply") == _sha(tmp_path / "b.ply")
+    assert _sha(tmp_path / "a.stl") == _sha(tmp_path / "b.stl")
+    assert (tmp_path / "a.json").read_text() == (tmp_path / "b.json").read_text()
+    # nothing half-written left beside the outputs
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        ["plate.parquet", "a.ply", "a.json", "a.stl", "b.ply", "b.json", "b.stl"])
+    # the PLY: float64 coordinates, exact; laser and frame kept; Open3D reads it too
+    r = read_ply(tmp_path / "a.ply")
+    assert np.array_equal(r["points"], a.points)
+    assert np.array_equal(r["laser"], a.laser) and np.array_equal(r["frame"], a.frame)
+    given = set(map(tuple, df[["x", "y", "z"]].to_numpy()))
+    assert all(tuple(q) in given for q in a.points)  # every output point is an input, bit for bit
+    pcd = o3d.io.read_point_cloud(str(tmp_path / "a.ply"))
+    assert len(pcd.points) == len(a.points) and pcd.has_normals()
+    assert np.allclose(np.asarray(pcd.points), a.points, atol=0, rtol=0)
+    stats = json.loads((tmp_path / "a.json").read_text())
+    assert stats["n_output"] == len(a.points) and stats["mesh_triangles"] > 1000
+    mesh = o3d.io.read_triangle_mesh(str(tmp_path / "a.stl"))
+    assert len(mesh.triangles) == stats["mesh_triangles"]
+
+
+@pytest.mark.slow
+def test_run_fuse_voxels_and_poisson(plate_scan, tmp_path):
+    df, _, T = plate_scan
+    pq = tmp_path / "plate.parquet"
+    write_parquet(pq, df)
+    c = run_fuse(pq, tmp_path / "v.ply", voxel_mm=0.5, mesh="poisson", mesh_out=tmp_path / "v.stl",
+                 threads=2)
+    run_fuse(pq, tmp_path / "w.ply", voxel_mm=0.5, mesh="poisson", mesh_out=tmp_path / "w.stl",
+             threads=2)
+    assert _sha(tmp_path / "v.stl") == _sha(tmp_path / "w.stl")
+    assert 0 < c.stats["n_output"] < c.stats["n_after_outlier_removal"]
+    assert set(np.unique(c.laser)) == {1, 2}
+    mesh = o3d.io.read_triangle_mesh(str(tmp_path / "v.stl"))
+    V = np.asarray(mesh.vertices)
+    # the Poisson surface of a plate stays on the plate where it has support (it smooths
+    # 0.5 mm voxels over stripes ~1 mm apart, and curls a little at the border)
+    dev = np.abs((V - T[:3, 3]) @ T[:3, 2])
+    assert np.median(dev) < 0.03 and np.percentile(dev, 90) < 0.2
+
+
+def test_run_fuse_errors_name_the_problem(tmp_path):
+    with pytest.raises(StageError, match="not found"):
+        run_fuse(tmp_path / "none.parquet", tmp_path / "x.ply")
+    pq = tmp_path / "bad.parquet"
+    write_parquet(pq, pd.DataFrame({"x": [1.0], "y": [2.0]}))
+    with pytest.raises(StageError, match="missing column"):
+        run_fuse(pq, tmp_path / "x.ply")
+    with pytest.raises(StageError, match="mesh-out"):
+        run_fuse(pq, tmp_path / "x.ply", mesh="poisson")
+    assert not (tmp_path / "x.ply").exists()
+
+
+def test_points_in_camera_and_base_agree(plate_scan):
+    # the synthetic scan itself: base = T_base_cam · cam, frame by frame (guards the fixtures)
+    df, Ts, _ = plate_scan
+    f = df["frame"].to_numpy()
+    pc = df[["x_cam", "y_cam", "z_cam"]].to_numpy()
+    pb = df[["x", "y", "z"]].to_numpy()
+    back = np.einsum("nij,nj->ni", invert_transform(Ts)[f, :3, :3], pb) + invert_transform(Ts)[f, :3, 3]
+    assert np.abs(back - pc).max() < 1e-9

@@ -1,0 +1,86 @@
+"""The report on a rendered `--quick` capture, after every stage of the pipeline (slow)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import pytest
+
+from crossline.cli import main
+from crossline.report import build_report
+from crossline.report_pages import build_pages, fmt, fmt_row_value, page_texts
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def quick_pipeline(quick_capture, tmp_path_factory):
+    """Every stage run on the quick capture through the CLI, as the workflow runs them."""
+    cap = str(quick_capture)
+    root = tmp_path_factory.mktemp("quick")
+    cal = root / "interim" / "calibration"
+    steps = [
+        ["calibrate-camera", cap, "--out", str(cal / "camera.json"), "--threads", "2"],
+        ["calibrate-lasers", cap, "--camera", str(cal / "camera.json"), "--out",
+         str(cal / "lasers.json"), "--threads", "2"],
+        ["calibrate-handeye", cap, "--camera", str(cal / "camera.json"), "--out",
+         str(cal / "handeye.json"), "--threads", "2"],
+    ]
+    from crossline.capture import read_rig
+
+    for s in sorted(read_rig(quick_capture / "rig.yaml").scans):
+        st = root / "interim" / "stripes" / f"{s}.parquet"
+        pts = root / "interim" / "points" / f"{s}.parquet"
+        steps += [
+            ["extract-stripes", cap, s, "--out", str(st), "--threads", "2"],
+            ["triangulate", cap, s, "--stripes", str(st), "--camera", str(cal / "camera.json"),
+             "--lasers", str(cal / "lasers.json"), "--handeye", str(cal / "handeye.json"),
+             "--out", str(pts)],
+            ["fuse", str(pts), "--out", str(root / "processed" / f"{s}.ply"), "--stats",
+             str(root / "processed" / f"{s}.fuse.json")],
+        ]
+    for argv in steps:
+        assert main(argv) == 0, f"stage failed: crossline {' '.join(argv)}"
+    return quick_capture, root / "interim", root / "processed", root
+
+
+def test_quick_report_every_section_and_same_bytes(quick_pipeline):
+    cap, interim, processed, root = quick_pipeline
+    cfg = json.dumps({"report": {"tolerances": {"gauge_std_mm": 0.006}}})
+    for k in ("a", "b"):
+        assert main(["report", str(cap), "--interim", str(interim), "--processed", str(processed),
+                     "--config-json", cfg, "--pdf", str(root / f"{k}.pdf"),
+                     "--metrics", str(root / f"{k}.json")]) == 0
+    for ext in ("pdf", "json"):
+        a = hashlib.sha256((root / f"a.{ext}").read_bytes()).hexdigest()
+        b = hashlib.sha256((root / f"b.{ext}").read_bytes()).hexdigest()
+        assert a == b, f"two runs gave different {ext} bytes"
+    m = json.loads((root / "a.json").read_text())
+    assert set(m["calibration"]) == {"camera", "lasers", "handeye"}
+    assert m["capture"]["simulated"] and m["validation"]["camera"] and m["validation"]["handeye"]
+    for name, s in m["scans"].items():
+        assert "error" not in s, f"{name}: {s.get('error')}"
+        assert s["counts"]["gain_over_single_line"] > 1.0
+        assert s.get("truth"), name
+    assert {r["id"] for r in m["summary"]} >= {"gauge_mean_error_mm", "gauge_std_mm",
+                                               "ab_height_difference_mm", "plane_within_share",
+                                               "sphere_size_error_mm", "sphere_form_error_mm"}
+
+
+def test_quick_report_pages_show_metrics(quick_pipeline):
+    cap, interim, processed, _ = quick_pipeline
+    data = build_report(cap, interim, processed)
+    m = data.metrics
+    texts = [" ".join(page_texts(f)) for f in build_pages(m, data.plots)]
+    for r in m["summary"]:
+        assert fmt_row_value(r) in texts[0]
+    for name, s in m["scans"].items():
+        page = next(t for t in texts if f"Scan '{name}'" in t)
+        assert fmt(s["counts"]["gain_over_single_line"], "", 3) in page
+        meas = s.get("measurement") or {}
+        shown = {"gauge_block": [("mean_mm", "mm"), ("std_mm", "mm")],
+                 "plane": [("share_within_band", "%"), ("rms_mm", "mm")],
+                 "sphere": [("diameter_mm", "mm"), ("form_error_d95_mm", "mm")]}
+        for key, unit in shown.get(s["artefact"], []):
+            assert fmt(meas[key], unit) in page, (name, key)
