@@ -1,0 +1,25 @@
+# crossline: capture folders -> calibrations -> stripes -> points -> clouds -> accuracy reports.
+# A table of contents; the rules live in workflow/rules/, the code in the crossline package.
+# Run: snakemake --cores 2  (the default profile in profiles/default supplies the rest).
+
+from snakemake.utils import min_version
+
+min_version("9.0")
+
+
+configfile: "config.yaml"
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/simulate.smk"
+include: "workflow/rules/check.smk"
+include: "workflow/rules/calibrate.smk"
+include: "workflow/rules/scan.smk"
+include: "workflow/rules/fuse.smk"
+include: "workflow/rules/report.smk"
+
+
+rule all:
+    default_target: True
+    input:
+        expand("reports/{capture}/accuracy.pdf", capture=config["captures"]),

@@ -1,0 +1,216 @@
+"""The Snakemake workflow end to end on a quick capture: lint, partial re-runs, determinism,
+bad captures beside good ones, interruption.
+
+Each test works in its own copy of the workflow (Snakefile, rules, schema, profile and the
+crossline sources that the rules declare as inputs), so editing a module or a parameter
+there does not disturb the repository or other tests.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from tests.conftest import REPO
+
+pytestmark = pytest.mark.slow
+
+SNAKEMAKE = [sys.executable, "-m", "snakemake"]
+
+
+def make_workdir(root: Path, captures: dict[str, Path], **overrides) -> Path:
+    """A private copy of the workflow with ``captures`` linked under data/raw."""
+    root.mkdir(parents=True, exist_ok=True)
+    shutil.copy(REPO / "Snakefile", root)
+    for d in ("workflow", "profiles", "crossline"):
+        shutil.copytree(REPO / d, root / d, ignore=shutil.ignore_patterns("__pycache__"))
+    cfg = yaml.safe_load((REPO / "config.yaml").read_text())
+    cfg["captures"] = list(captures)
+    cfg["simulate"] = {}
+    for key, value in overrides.items():
+        section, _, name = key.partition("__")
+        cfg[section][name] = value
+    (root / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    (root / "data" / "raw").mkdir(parents=True, exist_ok=True)
+    for name, path in captures.items():
+        (root / "data" / "raw" / name).symlink_to(path, target_is_directory=True)
+    return root
+
+
+def set_config(workdir: Path, section: str, key: str, value) -> None:
+    cfg = yaml.safe_load((workdir / "config.yaml").read_text())
+    cfg[section][key] = value
+    (workdir / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+
+
+def snakemake(workdir: Path, *args: str, check: bool = True) -> subprocess.CompletedProcess:
+    proc = subprocess.run(
+        [*SNAKEMAKE, "--cores", "2", *args], cwd=workdir, capture_output=True, text=True,
+        timeout=900,
+    )
+    if check and proc.returncode != 0:
+        raise AssertionError(f"snakemake {' '.join(args)} failed:\n{proc.stdout}\n{proc.stderr}")
+    return proc
+
+
+def planned_jobs(workdir: Path, *args: str) -> dict[str, int]:
+    """Rule -> job count of a dry run (from Snakemake's job-stats table)."""
+    proc = snakemake(workdir, "-n", *args)
+    text = proc.stdout + proc.stderr
+    if "Nothing to be done" in text:
+        return {}
+    table = text.split("Job stats:", 1)[1].split("total", 1)[0]
+    jobs = {}
+    for line in table.splitlines():
+        m = re.fullmatch(r"\s*(\w+)\s+(\d+)\s*", line)
+        if m:
+            jobs[m.group(1)] = int(m.group(2))
+    jobs.pop("all", None)
+    return jobs
+
+
+def outputs(workdir: Path) -> dict[str, bytes]:
+    """Every artefact of a run, by path relative to the workdir."""
+    files = {}
+    for top in ("data/interim", "data/processed", "reports"):
+        for p in sorted((workdir / top).rglob("*")):
+            if p.is_file():
+                files[str(p.relative_to(workdir))] = p.read_bytes()
+    return files
+
+
+@pytest.fixture(scope="module")
+def done_workdir(tmp_path_factory, quick_capture: Path) -> Path:
+    """A workdir in which the whole workflow has run once on the quick capture."""
+    wd = make_workdir(tmp_path_factory.mktemp("wf") / "run", {"q": quick_capture})
+    snakemake(wd)
+    return wd
+
+
+def test_lint_clean() -> None:
+    proc = subprocess.run([*SNAKEMAKE, "--lint"], cwd=REPO, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "Congratulations, your workflow is in a good condition!" in proc.stdout + proc.stderr
+
+
+def test_full_run_outputs(done_workdir: Path) -> None:
+    wd = done_workdir
+    for f in ("camera.json", "lasers.json", "handeye.json"):
+        assert (wd / "data/interim/q/calibration" / f).is_file()
+    scans = sorted(json.loads((wd / "data/interim/q/check.json").read_text())["scans"])
+    assert scans
+    for s in scans:
+        assert (wd / f"data/interim/q/points/{s}.parquet").is_file()
+        assert (wd / f"data/processed/q/{s}.ply").is_file()
+    assert (wd / "reports/q/accuracy.pdf").read_bytes().startswith(b"%PDF")
+    assert planned_jobs(wd) == {}
+
+
+def _rerun_set(done: Path, tmp: Path, section: str, key: str, value) -> dict[str, int]:
+    wd = tmp / "copy"
+    shutil.copytree(done, wd, symlinks=True)
+    set_config(wd, section, key, value)
+    return planned_jobs(wd)
+
+
+def test_changing_T_reruns_labelling_onward(done_workdir: Path, tmp_path: Path) -> None:
+    n = len(json.loads((done_workdir / "data/interim/q/check.json").read_text())["scans"])
+    jobs = _rerun_set(done_workdir, tmp_path, "points", "threshold_px", 12.5)
+    assert jobs == {"triangulate_points": n, "fuse_points": n, "render_report": 1}
+
+
+def test_changing_extractor_reruns_extraction_onward(done_workdir: Path, tmp_path: Path) -> None:
+    n = len(json.loads((done_workdir / "data/interim/q/check.json").read_text())["scans"])
+    jobs = _rerun_set(done_workdir, tmp_path, "stripes", "extractor", "steger")
+    assert jobs == {
+        "extract_stripes": n, "gather_stripes": n, "triangulate_points": n, "fuse_points": n,
+        "render_report": 1,
+    }
+
+
+def test_changing_camera_option_reruns_all_that_uses_the_camera(
+    done_workdir: Path, tmp_path: Path
+) -> None:
+    n = len(json.loads((done_workdir / "data/interim/q/check.json").read_text())["scans"])
+    jobs = _rerun_set(done_workdir, tmp_path, "camera", "outlier_factor", 4.0)
+    assert jobs == {
+        "calibrate_camera": 1, "calibrate_lasers": 1, "calibrate_handeye": 1,
+        "triangulate_points": n, "fuse_points": n, "render_report": 1,
+    }
+
+
+def test_editing_a_module_reruns_its_stages(done_workdir: Path, tmp_path: Path) -> None:
+    n = len(json.loads((done_workdir / "data/interim/q/check.json").read_text())["scans"])
+    wd = tmp_path / "copy"
+    shutil.copytree(done_workdir, wd, symlinks=True)
+    module = wd / "crossline" / "stripes.py"
+    module.write_text(module.read_text() + "\n# an edit\n")
+    jobs = planned_jobs(wd)
+    # the laser-plane calibration centres its stripes with the same extractor
+    assert jobs == {
+        "calibrate_lasers": 1, "extract_stripes": n, "gather_stripes": n,
+        "triangulate_points": n, "fuse_points": n, "render_report": 1,
+    }
+    # the report module is imported by the report alone
+    wd2 = tmp_path / "copy2"
+    shutil.copytree(done_workdir, wd2, symlinks=True)
+    report = wd2 / "crossline" / "report.py"
+    report.write_text(report.read_text() + "\n# an edit\n")
+    assert planned_jobs(wd2) == {"render_report": 1}
+
+
+def test_deterministic_across_runs_and_cores(done_workdir: Path, tmp_path: Path) -> None:
+    first = outputs(done_workdir)
+    wd = make_workdir(tmp_path / "again", {"q": (done_workdir / "data/raw/q").resolve()})
+    snakemake(wd, "--cores", "1")
+    second = outputs(wd)
+    assert sorted(first) == sorted(second)
+    differ = [k for k in first if first[k] != second[k]]
+    assert differ == [], f"artefacts differ between runs: {differ}"
+
+
+def test_chunked_extraction_gives_identical_points(done_workdir: Path, tmp_path: Path) -> None:
+    wd = make_workdir(tmp_path / "chunks", {"q": (done_workdir / "data/raw/q").resolve()},
+                      stripes__chunks=3)
+    scans = sorted(json.loads((done_workdir / "data/interim/q/check.json").read_text())["scans"])
+    targets = [f"data/interim/q/points/{s}.parquet" for s in scans]
+    snakemake(wd, *targets)
+    for t in targets:
+        assert (wd / t).read_bytes() == (done_workdir / t).read_bytes(), t
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGKILL], ids=["ctrl-c", "kill-9"])
+def test_interrupted_run_completes_identically(done_workdir: Path, tmp_path: Path, sig) -> None:
+    wd = make_workdir(tmp_path / "kill", {"q": (done_workdir / "data/raw/q").resolve()})
+    proc = subprocess.Popen(
+        [*SNAKEMAKE, "--cores", "2"], cwd=wd, stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL, start_new_session=True,
+    )
+    # wait until stripe extraction (a heavy stage) is under way, then interrupt
+    deadline = time.time() + 600
+    while time.time() < deadline and not (wd / "logs/q/extract_stripes").is_dir():
+        time.sleep(0.1)
+    time.sleep(0.5)
+    if sig == signal.SIGKILL:
+        os.killpg(proc.pid, sig)  # power cut: snakemake and its jobs die at once
+    else:
+        os.kill(proc.pid, sig)
+    proc.wait(timeout=120)
+    assert proc.returncode != 0
+    assert not (wd / "reports/q/accuracy.pdf").exists()
+    leftovers = [p for p in (wd / "data").rglob("*.tmp")]
+    if sig == signal.SIGKILL:
+        snakemake(wd, "--unlock")
+    snakemake(wd)
+    assert outputs(wd) == outputs(done_workdir)
+    assert not [p for p in leftovers if p.exists()], "stale temporary files were not cleared"

@@ -1,0 +1,15 @@
+# Validate each capture before anything is computed from it; its summary lists the scans.
+
+
+checkpoint check_capture:
+    input:
+        capture=capture_input,
+        code=code("crossline.capture"),
+    output:
+        summary="data/interim/{capture}/check.json",
+    log:
+        "logs/{capture}/check.log",
+    conda:
+        "../envs/crossline.yaml"
+    shell:
+        "crossline check data/raw/{wildcards.capture} --json {output.summary} > {log} 2>&1"

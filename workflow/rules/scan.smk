@@ -1,0 +1,80 @@
+# Scan stages: stripe centres (scattered over chunks of frames), then labels and 3-D points.
+
+
+rule extract_stripes:
+    input:
+        summary="data/interim/{capture}/check.json",
+        frames=scan_frames_input,
+        code=code("crossline.stripes"),
+    output:
+        part="data/interim/{capture}/stripes/{scan}/part{i}-of-{n}.parquet",
+    params:
+        extractor=config["stripes"]["extractor"],
+        threshold=config["stripes"]["threshold"],
+        min_width=config["stripes"]["min_width"],
+        max_width=config["stripes"]["max_width"],
+        sigma=config["stripes"]["sigma"],
+        pad=config["stripes"]["pad"],
+    log:
+        "logs/{capture}/extract_stripes/{scan}.part{i}-of-{n}.log",
+    benchmark:
+        "logs/{capture}/benchmarks/extract_stripes/{scan}.part{i}-of-{n}.tsv"
+    threads: 2
+    resources:
+        mem_mb=1000,
+    conda:
+        "../envs/crossline.yaml"
+    shell:
+        "crossline extract-stripes data/raw/{wildcards.capture} {wildcards.scan} "
+        "--out {output.part} --extractor {params.extractor} --threshold {params.threshold} "
+        "--min-width {params.min_width} --max-width {params.max_width} --sigma {params.sigma} "
+        "--pad {params.pad} --chunk {wildcards.i}/{wildcards.n} --threads {threads} > {log} 2>&1"
+
+
+rule gather_stripes:
+    input:
+        parts=stripe_chunks,
+        code=code("crossline.stripes"),
+    output:
+        stripes="data/interim/{capture}/stripes/{scan}.parquet",
+    log:
+        "logs/{capture}/gather_stripes/{scan}.log",
+    conda:
+        "../envs/crossline.yaml"
+    shell:
+        "crossline gather-stripes {input.parts} --out {output.stripes} > {log} 2>&1"
+
+
+rule triangulate_points:
+    input:
+        stripes="data/interim/{capture}/stripes/{scan}.parquet",
+        camera="data/interim/{capture}/calibration/camera.json",
+        lasers="data/interim/{capture}/calibration/lasers.json",
+        handeye="data/interim/{capture}/calibration/handeye.json",
+        frames="data/raw/{capture}/scans/{scan}/frames.csv",
+        code=code("crossline.triangulate"),
+    output:
+        points="data/interim/{capture}/points/{scan}.parquet",
+        stats="data/interim/{capture}/points/{scan}.json",
+    params:
+        threshold_px=config["points"]["threshold_px"],
+        max_frame_gap=config["points"]["max_frame_gap"],
+        ambiguity_px=config["points"]["ambiguity_px"],
+        predict=config["points"]["predict"],
+        end_trim_px=config["points"]["end_trim_px"],
+        smooth_px=config["points"]["smooth_px"],
+    log:
+        "logs/{capture}/triangulate_points/{scan}.log",
+    benchmark:
+        "logs/{capture}/benchmarks/triangulate_points/{scan}.tsv"
+    resources:
+        mem_mb=2000,
+    conda:
+        "../envs/crossline.yaml"
+    shell:
+        "crossline triangulate data/raw/{wildcards.capture} {wildcards.scan} "
+        "--stripes {input.stripes} --camera {input.camera} --lasers {input.lasers} "
+        "--handeye {input.handeye} --out {output.points} --threshold-px {params.threshold_px} "
+        "--max-frame-gap {params.max_frame_gap} --ambiguity-px {params.ambiguity_px} "
+        "--predict {params.predict} --end-trim-px {params.end_trim_px} "
+        "--smooth-px {params.smooth_px} --stats {output.stats} > {log} 2>&1"
