@@ -228,7 +228,7 @@ def run_triangulate(
             n_points += tbl.num_rows
         feed_until(len(sc.frames))
         counts = dict(dis.counts)
-        counts.update({f"dropped_{k}": n for k, n in trimmed.items()})
+        counts["trimmed"] = dict(trimmed)  # labelled, then dropped: stripe ends and short traces
         pat = laser_pattern(sc.lasers)
         meta = {
             "scan": scan,

@@ -395,7 +395,7 @@ def test_gauge_referenced_per_frame_cancels_pose_errors():
     assert f["plane_reference_std_mm"] == pytest.approx(plane["std_mm"], rel=0.05)
     assert f["frame_offset_std_mm"] == pytest.approx(np.std(offset, ddof=1), rel=0.05)
     ab = mt.compare_lasers("gauge_block", moved, lab, gauge=g)
-    assert abs(ab.difference["height_mm"]) < 1e-9
+    assert abs(ab.difference["height_mm"]) < 1e-6  # the same plate-fit tilt as above
 
 
 def test_gauge_referenced_needs_plate_in_the_same_frames():

@@ -5,13 +5,12 @@ from __future__ import annotations
 import hashlib
 import json
 import shutil
-import subprocess
 
 import numpy as np
 import pytest
 
 from crossline.fuse import run_fuse
-from crossline.report import build_report, load_config, points_per_frame, run_report
+from crossline.report import FORM_KEYS, build_report, load_config, points_per_frame, run_report
 from crossline.report_pages import build_pages, fmt, fmt_row_value, fmt_tolerance, page_texts
 from tests.test_report_synthetic import make_capture
 
@@ -85,7 +84,9 @@ def test_every_section_is_there(report_data):
     for s in SCANS:
         sc = m["scans"][s]
         assert "error" not in sc, sc.get("error")
-        assert sc["counts"]["gain_over_single_line"] == pytest.approx(4 / 3, abs=0.02)
+        # 4/3 within a few %: centres around the crossing of AB frames are dropped (biased
+        # by the other stripe), trace ends are trimmed, and the part moves between frames
+        assert sc["counts"]["gain_over_single_line"] == pytest.approx(4 / 3, abs=0.035)
         assert sc["counts"]["fused"]["n_output"] == sc["cloud_points"]
         assert sc["truth"]
     for s in ("gauge", "plate", "ball"):
@@ -133,8 +134,10 @@ def test_summary_rows_are_the_measured_figures(report_data):
     assert rows["ab_height_difference_mm", "gauge"]["value"] == g["a_vs_b"]["A_minus_B"]["height_mm"]
     assert rows["plane_within_share", "plate"]["value"] == \
         m["scans"]["plate"]["measurement"]["share_within_band"]
-    assert rows["sphere_form_error_mm", "ball"]["value"] == \
-        m["scans"]["ball"]["measurement"]["form_error_d95_mm"]
+    ball = m["scans"]["ball"]["measurement"]
+    stat = m["provenance"]["metrology"]["sphere_form_statistic"]
+    assert rows["sphere_form_error_mm", "ball"]["value"] == ball[FORM_KEYS[stat]]
+    assert rows["sphere_form_error_d95_mm", "ball"]["value"] == ball["form_error_d95_mm"]
     for r in m["summary"]:
         if r["tolerance"] is not None:
             v = abs(r["value"]) if r["abs"] else r["value"]
@@ -191,13 +194,13 @@ def test_run_twice_same_bytes_and_inputs_hashed(synthetic, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "a.pdf", "b.json", "b.pdf"]
 
 
-@pytest.mark.skipif(shutil.which("pdftotext") is None, reason="pdftotext (poppler-utils) missing")
 @pytest.mark.slow
 def test_pdf_text_carries_the_numbers(synthetic, tmp_path):
+    from pypdf import PdfReader
+
     raw, interim, processed = synthetic
     m = run_report(raw, interim, processed, tmp_path / "r.pdf", tmp_path / "r.json")
-    text = subprocess.run(["pdftotext", "-layout", str(tmp_path / "r.pdf"), "-"],
-                          capture_output=True, text=True, check=True).stdout
+    text = "\n".join(page.extract_text() for page in PdfReader(tmp_path / "r.pdf").pages)
     for r in m["summary"]:
         assert fmt_row_value(r).replace("−", "-") in text.replace("−", "-")
     assert fmt(m["scans"]["gauge"]["measurement"]["mean_mm"], "mm") in text

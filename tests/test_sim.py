@@ -56,12 +56,23 @@ def _calibration_images(root: Path) -> list[Path]:
 @pytest.mark.parametrize("which", ["paper", "compact"])
 def test_quick_capture_passes_the_capture_check(which, quick_capture, quick_capture_compact):
     summary = check_capture(quick_capture if which == "paper" else quick_capture_compact)
+    spec = PRESETS[which].quick_calibration
     v = summary["views"]
-    assert v["camera"] >= 10 and v["laser_A"] >= 3 and v["laser_B"] >= 3 and v["handeye"] >= 8
+    assert (v["camera"], v["laser_A"], v["laser_B"], v["handeye"]) == (
+        spec.camera_views, spec.laser_poses, spec.laser_poses, spec.handeye_views)
     assert set(summary["scans"]) == {"gauge", "plate", "ball", "part"}
     for s in summary["scans"].values():
-        assert s["frames"] >= 30 and s["pattern"] == ["A", "B", "AB"] and s["pattern_breaks"] == 0
+        assert s["frames"] == PRESETS[which].quick_frames
+        assert s["pattern"] == ["A", "B", "AB"] and s["pattern_breaks"] == 0
     assert summary["simulated"]
+
+
+@pytest.mark.parametrize("which", sorted(PRESETS))
+def test_full_presets_render_the_views_the_method_needs(which):
+    """Full captures: >= 15 camera views, >= 3 poses per laser, >= 8 hand-eye views."""
+    spec = PRESETS[which].calibration
+    assert spec.camera_views >= 15 and spec.laser_poses >= 3 and spec.handeye_views >= 8
+    assert len(spec.laser_depths_mm) == spec.laser_poses
 
 
 @pytest.mark.slow
