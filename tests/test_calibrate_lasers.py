@@ -84,7 +84,8 @@ def test_stripe_beside_the_board_is_no_stripe_on_the_board(rays: np.ndarray) -> 
     on = render_view(CAM, BOARD, T, rays=rays, light=20, dark=2.5, table=20, noise=1.0,
                      laser_plane=(n, 28.0), laser_sigma_mm=0.05, laser_peak=170.0)
     assert (on.astype(int) - b // 10).max() > 100  # the stripe is in the image
-    with pytest.raises(CalibrationError, match=r"^x\.png: no laser stripe on the board: 0 stripe centres"):
+    off_plate = r"^x\.png: no laser stripe on the board: the stripe .* lies off the board's plate"
+    with pytest.raises(CalibrationError, match=off_plate):
         stripe_points(CAM, BOARD, b, on, name="x.png")
 
 
@@ -138,3 +139,31 @@ def test_ambient_model() -> None:
     laser[100:104] = 250
     a, b = ambient_model(board, np.clip(np.round(laser), 0, 255).astype(np.uint8))
     assert abs(a - 0.1) < 0.002 and abs(b - 3.0) < 0.2
+
+
+def test_robust_plane_is_not_taken_by_the_largest_pose() -> None:
+    """Each pose's stripe is a line that its own board plane holds exactly: with one pose
+    holding most points, the fit must still be the laser plane through all the lines."""
+    rng = np.random.default_rng(3)
+    n = np.array([0.1, -0.7, 0.7]) / np.linalg.norm([0.1, -0.7, 0.7])
+    d = -50.0
+    u = np.cross(n, [1.0, 0.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
+    lines, groups = [], []
+    for k, (m, ang) in enumerate([(3000, 0.0), (700, 1.0), (600, 2.1)]):
+        direction = np.cos(ang) * u + np.sin(ang) * v  # a line in the laser plane
+        t = rng.uniform(-15, 15, m)
+        q = -d * n + np.outer(t, direction) + 3.0 * k * np.cross(n, direction)
+        # the centres' noise moves them within their board's plane (tilted 40 deg from the
+        # laser plane about the line), which therefore holds them exactly
+        b = np.cos(0.7) * n + np.sin(0.7) * np.cross(n, direction)
+        w = np.cross(b, direction)
+        lines.append(q + np.outer(rng.normal(scale=0.003, size=m), w))
+        groups.append(np.full(m, k))
+    pts, grp = np.concatenate(lines), np.concatenate(groups)
+    nf, df, inl = robust_plane(pts, groups=grp)
+    if nf @ n < 0:
+        nf, df = -nf, -df
+    assert np.degrees(angle_between(nf, n)) < 0.01 and abs(df - d) < 0.005
+    assert inl.mean() > 0.95

@@ -214,3 +214,55 @@ def test_interrupted_run_completes_identically(done_workdir: Path, tmp_path: Pat
     snakemake(wd)
     assert outputs(wd) == outputs(done_workdir)
     assert not [p for p in leftovers if p.exists()], "stale temporary files were not cleared"
+
+
+def test_bad_captures_beside_a_good_one(done_workdir: Path, tmp_path: Path) -> None:
+    """Each broken capture fails at its stage with a message naming the file and the fault,
+    leaves no output of that stage, and the good capture and good scans still go through."""
+    from tests.broken import break_capture
+
+    wd = tmp_path / "bad"
+    shutil.copytree(done_workdir, wd, symlinks=True)
+    good = (done_workdir / "data/raw/q").resolve()
+    faults = ["empty", "corrupt_png", "nan_pose", "misspelt_rig_key", "few_views", "scan_faults"]
+    for f in faults:
+        break_capture(good, tmp_path / "raw" / f, f)
+        (wd / "data/raw" / f).symlink_to(tmp_path / "raw" / f, target_is_directory=True)
+    cfg = yaml.safe_load((wd / "config.yaml").read_text())
+    cfg["captures"] = ["q", *faults]
+    (wd / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    before = outputs(done_workdir)
+    proc = snakemake(wd, "--keep-going", check=False)
+    assert proc.returncode != 0
+
+    def log(capture: str, name: str) -> str:
+        return (wd / "logs" / capture / name).read_text()
+
+    interim = wd / "data/interim"
+    expect_check = {
+        "empty": "is empty; expected rig.yaml, calibration/ and scans/",
+        "corrupt_png": "scans/plate/frames/000005.png: truncated PNG",
+        "nan_pose": "calibration/handeye/poses.csv, line 4: 'y' = nan is not a finite pose value",
+        "misspelt_rig_key": "rig.yaml: unknown key 'frame_rat' (misspelt 'frame_rate'?)",
+    }
+    for capture, message in expect_check.items():
+        assert message in log(capture, "check.log"), capture
+        assert not (interim / capture).exists(), capture
+    # too few views: the camera calibration names every view and why it was not used
+    text = log("few_views", "calibrate_camera.log")
+    assert "needs at least 6 usable views, got 2 of 22" in text
+    assert all(f"camera/view_{i:02d}.png" in text for i in range(2, 8))
+    assert not (interim / "few_views/calibration/camera.json").exists()
+    # scan faults: the broken scans fail, the capture's other scans are processed
+    assert "scan gauge: has AB frames but no A frame" in log(
+        "scan_faults", "triangulate_points/gauge.log")
+    plate_logs = " ".join(p.read_text() for p in (wd / "logs/scan_faults").rglob("*plate*.log"))
+    assert "plate" in plate_logs and "stripe" in plate_logs
+    points = interim / "scan_faults/points"
+    assert not (points / "gauge.parquet").exists() and not (points / "plate.parquet").exists()
+    assert (points / "ball.parquet").is_file() and (points / "part.parquet").is_file()
+    assert not (wd / "reports/scan_faults").exists()
+    # nothing of the good capture was redone or changed, no temporary file left anywhere
+    after = {k: v for k, v in outputs(wd).items() if "/q/" in k or k.startswith("reports/q/")}
+    assert after == before
+    assert not list((wd / "data").rglob("*.tmp"))

@@ -109,6 +109,20 @@ def edge_clearance(board: Board, xy: np.ndarray, board_margin: float | None = No
     return np.where(inside < 0, inside, np.minimum(clear, inside))
 
 
+def _light_mask(board_image: np.ndarray) -> np.ndarray:
+    """The board image's light albedo class (Otsu's threshold on the lasers-off image)."""
+    img8 = board_image if board_image.dtype == np.uint8 else (board_image >> 8).astype(np.uint8)
+    _, mask = cv2.threshold(img8, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    return mask.astype(bool)
+
+
+def _peak(diff: np.ndarray, k: int = 400) -> float:
+    """The stripe's level: the median of the ``k`` highest values of the difference image."""
+    flat = diff.reshape(-1)
+    top = np.partition(flat, flat.size - k)[flat.size - k :] if flat.size > k else flat
+    return float(np.median(top))
+
+
 def _stripe_axis(diff: np.ndarray, thr: float, keep) -> str:
     """'column' if the stripe is flatter than 45° in the image, else 'row'."""
     v, u = np.nonzero(diff > thr)
@@ -168,22 +182,30 @@ def stripe_points(
         mm_px = np.abs(lam) / camera.fx / np.maximum(cosi, 0.2)
         return edge_clearance(board, xy[:, :2]) / mm_px
 
-    # the stripe's level: a high order statistic of the on-board difference
     sub = diff_f[::7, ::7]
     noise = 16.0 * 1.4826 * float(np.median(np.abs(sub - np.median(sub))))
-    k = 400
-    flat = diff.reshape(-1)
-    top = np.partition(flat, flat.size - k)[flat.size - k :] if flat.size > k else flat
-    peak = float(np.median(top))
     floor = max(8.0 * noise, 0.02 * full * 16.0)
+    # The stripe's level differs by the albedo ratio (~10x) between the board's light and
+    # dark areas: a threshold set by the brightest part would lose the stripe on the plate
+    # of a light-circles board. Centres are taken on the plate (the circles' interiors add
+    # little but noise on a dark-circles board), at the plate's own level.
+    light = _light_mask(board_image)
+    dm = np.where(~light if board.circles == "light" else light, diff, 0)
+    peak = _peak(dm)
+    if peak <= floor and _peak(diff) > floor:
+        raise CalibrationError(
+            f"{name}: no laser stripe on the board: the stripe (peak difference "
+            f"{_peak(diff) / 16:.1f}) lies off the board's plate (there {peak / 16:.1f}, needs "
+            f"> {floor / 16:.1f})"
+        )
     if peak <= floor:
         raise CalibrationError(
             f"{name}: no laser stripe on the board: the laser-on image is no brighter than the "
             f"lasers-off image (peak difference {peak / 16:.1f}, needs > {floor / 16:.1f})"
         )
     thr = max(threshold * peak, floor * 0.5)
-    axis = _stripe_axis(diff, thr, lambda uv: clearance_px(uv) > 0)
-    img = diff if axis == "column" else np.ascontiguousarray(diff.T)
+    axis = _stripe_axis(dm, thr, lambda uv: clearance_px(uv) > 0)
+    img = dm if axis == "column" else np.ascontiguousarray(dm.T)
     c = grey_centre(img, threshold=thr / full16, min_width=2.0, max_width=80.0, pad=PAD_PX)
     ok = (c["flags"] & ~np.uint8(4)) == 0  # saturation of the difference is harmless
     col, v, width = c["u"][ok], c["v"][ok], c["width"][ok]
@@ -240,19 +262,36 @@ def ambient_model(board_image: np.ndarray, laser_image: np.ndarray, step: int = 
 
 
 def robust_plane(
-    points: np.ndarray, trim: float = 3.0, samples: int = 300, seed: int = 0
+    points: np.ndarray,
+    trim: float = 3.0,
+    samples: int = 300,
+    seed: int = 0,
+    groups: np.ndarray | None = None,
 ) -> tuple[np.ndarray, float, np.ndarray]:
-    """Plane ``(n, d)`` through points (N, 3) and the inlier mask: LMedS start, trimmed LSQ."""
+    """Plane ``(n, d)`` through points (N, 3) and the inlier mask: LMedS start, trimmed LSQ.
+
+    ``groups`` (N,) names the board pose of each point. One pose's stripe is a line, and
+    the plane of its board holds it exactly: with poses of unequal size a plain median would
+    pick that board plane. So each candidate plane is drawn from two poses or more and
+    scored by the median, over poses, of each pose's median residual (the largest of
+    them for two poses): the plane must fit most poses, not most points.
+    """
     p = np.asarray(points, dtype=np.float64)
     rng = np.random.default_rng(seed)
-    idx = rng.integers(0, len(p), size=(samples, 3))
+    g = np.zeros(len(p), dtype=np.int64) if groups is None else np.unique(groups, return_inverse=True)[1]
+    ng = int(g.max()) + 1 if len(g) else 0
+    idx = rng.integers(0, len(p), size=(samples * (4 if ng > 1 else 1), 3))
+    if ng > 1:
+        idx = idx[~((g[idx[:, 0]] == g[idx[:, 1]]) & (g[idx[:, 1]] == g[idx[:, 2]]))][:samples]
     a, b, c = p[idx[:, 0]], p[idx[:, 1]], p[idx[:, 2]]
     nn = np.cross(b - a, c - a)
     norm = np.linalg.norm(nn, axis=1)
     ok = norm > 1e-9 * np.max(norm)
     nn = nn[ok] / norm[ok, None]
     dd = -np.sum(nn * a[ok], axis=1)
-    med = np.median(np.abs(p @ nn.T + dd), axis=0)
+    res = np.abs(p @ nn.T + dd)
+    per_pose = np.stack([np.median(res[g == k], axis=0) for k in range(ng)])
+    med = per_pose.max(axis=0) if ng == 2 else np.median(per_pose, axis=0)
     best = int(np.argmin(med))
     n, d = nn[best], dd[best]
     inl = np.ones(len(p), dtype=bool)
@@ -305,7 +344,8 @@ def run_calibrate_lasers(
     for laser in LASERS:
         mine = [(v, s) for v, s in results if v.laser == laser]
         pts = np.concatenate([s.points for _, s in mine])
-        nrm, d, inl = robust_plane(pts, trim=trim)
+        pose_of = np.concatenate([np.full(len(s.points), i) for i, (_, s) in enumerate(mine)])
+        nrm, d, inl = robust_plane(pts, trim=trim, groups=pose_of)
         k = 0
         poses = []
         for v, s in mine:

@@ -388,7 +388,8 @@ COMPACT = RigPreset(
     arm=ArmNoiseSpec(precision_mm=0.03, smooth_fraction=0.85, corr_time_s=0.5, rot_sigma_rad=3e-5),
     scans=_COMPACT_SCANS,
     calibration=CalibrationSpec(
-        camera_views=16, laser_poses=3, handeye_views=10, depth_range_mm=(85.0, 118.0),
+        # 24 hand-eye views, not 10: its arm is 0.03 mm, and X averages over the views
+        camera_views=16, laser_poses=3, handeye_views=24, depth_range_mm=(85.0, 118.0),
         laser_depths_mm=(86.0, 100.0, 114.0), handeye_distance_mm=100.0,
     ),
     table_z_mm=-5.0,

@@ -86,6 +86,14 @@ class Primitive:
     def transformed(self, T: np.ndarray) -> Primitive:  # pragma: no cover - interface
         raise NotImplementedError
 
+    def albedo(self, P, face):
+        """Reflectance at points: one value over the whole solid unless a solid says more."""
+        return np.full(len(P), self.albedo_value)
+
+    def edge_distance(self, P, face):
+        """Distance (mm) to the nearest albedo edge: none on a plain solid."""
+        return np.full(len(P), INF)
+
 
 # ----------------------------------------------------------------------------- half-space
 
@@ -117,13 +125,6 @@ class HalfSpace(Primitive):
         """Outward unit normals at points."""
         return np.broadcast_to(self.n, P.shape)
 
-    def albedo(self, P, face):
-        """Reflectance at points."""
-        return np.full(len(P), self.albedo_value)
-
-    def edge_distance(self, P, face):
-        """Distance (mm) to the nearest albedo edge (none on a plain face)."""
-        return np.full(len(P), INF)
 
     def inside(self, P, tol=1e-9):
         """Points in the closed solid (within tol)."""
@@ -347,13 +348,6 @@ class Sphere(Primitive):
         """Outward normals."""
         return (P - self.c) / self.r
 
-    def albedo(self, P, face):
-        """Reflectance."""
-        return np.full(len(P), self.albedo_value)
-
-    def edge_distance(self, P, face):
-        """No albedo edges."""
-        return np.full(len(P), INF)
 
     def inside(self, P, tol=1e-9):
         """Points in the closed ball."""
@@ -444,13 +438,6 @@ class Cylinder(Primitive):
         q = q - dot3(q, self.a)[:, None] * self.a
         return q / norm3(q)[:, None]
 
-    def albedo(self, P, face):
-        """Reflectance."""
-        return np.full(len(P), self.albedo_value)
-
-    def edge_distance(self, P, face):
-        """No albedo edges."""
-        return np.full(len(P), INF)
 
     def inside(self, P, tol=1e-9):
         """Points in the closed cylinder."""
@@ -619,13 +606,6 @@ class FreeformPart(Primitive):
         g = np.where((face == 1)[:, None], -self.M[2], g)  # bottom: gradient of -X_z
         return g / norm3(g)[:, None]
 
-    def albedo(self, P, face):
-        """Reflectance."""
-        return np.full(len(P), self.albedo_value)
-
-    def edge_distance(self, P, face):
-        """No albedo edges."""
-        return np.full(len(P), INF)
 
     def inside(self, P, tol=1e-9):
         """Points in the closed solid (tol in mm, roughly)."""
