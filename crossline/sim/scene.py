@@ -223,15 +223,18 @@ class Box(Primitive):
     def edge_distance(self, P, face):
         """Distance (mm) to the nearest edge: the face's border, or an albedo edge on it."""
         q = self.local(P)
-        axis = face // 2
-        slack = self.h - np.abs(q)
-        slack[np.arange(len(P)), axis] = INF
-        e = np.minimum(np.minimum(slack[:, 0], slack[:, 1]), slack[:, 2])
+        e = self._border_distance(q, face)
         for f, tex in self.textures.items():
             m = face == f
             if m.any():
                 e[m] = np.minimum(e[m], tex(q[m])[1])
         return e
+
+    def _border_distance(self, q, face):
+        """Distance (mm) from local points on a face to that face's border."""
+        slack = self.h - np.abs(q)
+        slack[np.arange(len(q)), face // 2] = INF
+        return np.minimum(np.minimum(slack[:, 0], slack[:, 1]), slack[:, 2])
 
     def shade(self, P, face, edges: bool):
         """Normals, albedos and (optionally) edge distances, evaluating textures once."""
@@ -240,10 +243,7 @@ class Box(Primitive):
         a = np.full(len(P), self.albedo_value)
         e = None
         if edges:
-            axis = face // 2
-            slack = self.h - np.abs(q)
-            slack[np.arange(len(P)), axis] = INF
-            e = np.minimum(np.minimum(slack[:, 0], slack[:, 1]), slack[:, 2])
+            e = self._border_distance(q, face)
         for f, tex in self.textures.items():
             m = face == f
             if m.all():
