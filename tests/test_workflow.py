@@ -266,3 +266,24 @@ def test_bad_captures_beside_a_good_one(done_workdir: Path, tmp_path: Path) -> N
     after = {k: v for k, v in outputs(wd).items() if "/q/" in k or k.startswith("reports/q/")}
     assert after == before
     assert not list((wd / "data").rglob("*.tmp"))
+
+
+@pytest.mark.parametrize("name", ["with space", "a/b"])
+def test_capture_name_with_space_or_slash_stops_before_any_job(tmp_path: Path, name: str) -> None:
+    wd = make_workdir(tmp_path / "names", {})
+    cfg = yaml.safe_load((wd / "config.yaml").read_text())
+    cfg["captures"] = [name]
+    (wd / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    proc = snakemake(wd, "-n", check=False)
+    assert proc.returncode != 0
+    assert (f"config.yaml: capture name {name!r} is not allowed: use letters, digits, '_', '-' "
+            "and '.', no spaces or slashes") in proc.stdout + proc.stderr
+    assert not (wd / "data/interim").exists()
+
+
+def test_config_value_out_of_range_names_the_key(tmp_path: Path) -> None:
+    wd = make_workdir(tmp_path / "schema", {}, points__threshold_px=-3)
+    proc = snakemake(wd, "-n", check=False)
+    text = proc.stdout + proc.stderr
+    assert proc.returncode != 0
+    assert "threshold_px" in text and "-3" in text and "exclusiveMinimum" in text

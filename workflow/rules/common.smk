@@ -10,17 +10,19 @@ from snakemake.utils import validate
 from crossline.provenance import PACKAGE_ROOT, module_files
 
 
-validate(config, "../schemas/config.schema.yaml")
-
 CAPTURE_NAME = r"[A-Za-z0-9_][A-Za-z0-9_.-]*"
-SIMULATED = dict(config.get("simulate", {}))
 
-for _name in config["captures"]:
-    if not re.fullmatch(CAPTURE_NAME, _name):
+# before the schema, which would say the same in the words of a JSON-schema pattern
+for _name in config.get("captures") or []:
+    if isinstance(_name, str) and not re.fullmatch(CAPTURE_NAME, _name):
         raise ValueError(
             f"config.yaml: capture name {_name!r} is not allowed: use letters, digits, "
             "'_', '-' and '.', no spaces or slashes"
         )
+
+validate(config, "../schemas/config.schema.yaml")
+
+SIMULATED = dict(config.get("simulate", {}))
 
 
 wildcard_constraints:
