@@ -7,6 +7,7 @@ import json
 import shutil
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from crossline.fuse import run_fuse
@@ -71,8 +72,9 @@ def test_residual_vectors_in_either_layout(synthetic):
     assert _find_residuals({"K": raw["K"]}) is None
 
 
-def test_every_section_is_there(report_data):
+def test_every_section_is_there(report_data, synthetic):
     m = report_data.metrics
+    raw, interim, _ = synthetic
     assert m["format"] == "crossline-metrics/1"
     assert m["capture"] == {"name": "syn", "date": "2024-05-17", "simulated": True,
                             "scans": sorted(SCANS)}
@@ -87,6 +89,13 @@ def test_every_section_is_there(report_data):
         # 4/3 within a few %: centres around the crossing of AB frames are dropped (biased
         # by the other stripe), trace ends are trimmed, and the part moves between frames
         assert sc["counts"]["gain_over_single_line"] == pytest.approx(4 / 3, abs=0.035)
+        # and exactly the gain counted from the points and frames files
+        fr = pd.read_csv(raw / "scans" / s / "frames.csv")
+        per = pd.read_parquet(interim / "points" / f"{s}.parquet")["frame"].value_counts()
+        n = fr["frame"].map(per).fillna(0)
+        single = fr["lasers"].isin(["A", "B"])
+        assert sc["counts"]["gain_over_single_line"] == pytest.approx(n.mean() / n[single].mean(),
+                                                                      rel=1e-12)
         assert sc["counts"]["fused"]["n_output"] == sc["cloud_points"]
         assert sc["truth"]
     for s in ("gauge", "plate", "ball"):

@@ -192,10 +192,10 @@ def stripe_points(
     light = _light_mask(board_image)
     dm = np.where(~light if board.circles == "light" else light, diff, 0)
     peak = _peak(dm)
-    if peak <= floor and _peak(diff) > floor:
+    if peak <= floor and (anywhere := _peak(diff)) > floor:
         raise CalibrationError(
             f"{name}: no laser stripe on the board: the stripe (peak difference "
-            f"{_peak(diff) / 16:.1f}) lies off the board's plate (there {peak / 16:.1f}, needs "
+            f"{anywhere / 16:.1f}) lies off the board's plate (there {peak / 16:.1f}, needs "
             f"> {floor / 16:.1f})"
         )
     if peak <= floor:
