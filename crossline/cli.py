@@ -40,6 +40,19 @@ def _bool(text: str) -> bool:
     raise argparse.ArgumentTypeError(f"expected true or false, got {text!r}")
 
 
+def _auto_or_fraction(text: str) -> float | None:
+    """'auto' (None) or a number in (0, 1)."""
+    if text.lower() == "auto":
+        return None
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected 'auto' or a number in (0, 1), got {text!r}") from None
+    if not 0 < x < 1:
+        raise argparse.ArgumentTypeError(f"expected 'auto' or a number in (0, 1), got {text!r}")
+    return x
+
+
 def _threads(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=int, default=1, help="CPU threads to use (default 1)")
 
@@ -226,7 +239,7 @@ def _calibrate_handeye(p: argparse.ArgumentParser) -> None:
 
 @command(
     "extract-stripes",
-    "stripe centres of every frame of a scan (grey-centre or Steger)",
+    "stripe centres of every frame of a scan (grey-centre, Gaussian fit or Steger)",
     """
     Streams the frames of one scan (each read once) and writes every stripe centre found,
     in full-sensor pixels: frame, lasers, u, v, strength, and the extractor's extras.
@@ -237,7 +250,9 @@ def _extract_stripes(p: argparse.ArgumentParser) -> None:
     p.add_argument("capture", type=Path, help="capture folder")
     p.add_argument("scan", help="scan name (a folder under scans/)")
     p.add_argument("--out", type=Path, required=True, help="stripes parquet to write")
-    p.add_argument("--extractor", choices=("grey_centre", "steger"), default="grey_centre")
+    p.add_argument("--extractor", choices=("grey_centre", "gaussian", "steger"), default="grey_centre",
+                   help="grey_centre: the paper's eq. 9; gaussian: weighted least-squares Gaussian "
+                        "profile (speckle-aware); steger: Hessian ridge detector")
     p.add_argument("--threshold", type=float, default=0.15,
                    help="stripe threshold as a fraction of full scale (default 0.15)")
     p.add_argument("--min-width", type=float, default=2.0, help="narrowest stripe, px")
@@ -245,6 +260,11 @@ def _extract_stripes(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sigma", type=float, default=2.0, help="Steger's Gaussian sigma, px")
     p.add_argument("--pad", type=int, default=2,
                    help="grey-centre: px the window reaches beyond the run above threshold (default 2)")
+    p.add_argument("--fit-pad", type=int, default=6,
+                   help="gaussian: px the fitted window reaches beyond the run above threshold (default 6)")
+    p.add_argument("--relative-noise", type=_auto_or_fraction, default=None,
+                   help="gaussian: the stripe's relative intensity noise (speckle contrast) that "
+                        "weights the fit, or 'auto' to estimate it in every frame (default)")
     p.add_argument("--decoder", choices=("auto", "fast", "opencv"), default="auto",
                    help="PNG decoder: fast (libdeflate + numba), opencv, or auto (fast if installed)")
     p.add_argument("--chunk", default="0/1", help="i/n: process the i-th of n slices (0-based)")
@@ -260,7 +280,9 @@ def _extract_stripes(p: argparse.ArgumentParser) -> None:
         run_extract_stripes(
             a.capture, a.scan, a.out, extractor=a.extractor, threshold=a.threshold,
             min_width=a.min_width, max_width=a.max_width, sigma=a.sigma, chunk=(i, n),
-            threads=a.threads, pad=a.pad, decoder=a.decoder,
+            threads=a.threads, pad=a.pad, fit_pad=a.fit_pad,
+            relative_noise=a.relative_noise,
+            decoder=a.decoder,
         )
         return 0
 

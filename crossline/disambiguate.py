@@ -169,7 +169,8 @@ class Disambiguator:
         in_a = (da <= T) & ~merged
         in_b = (db <= T) & ~merged
         both = in_a & in_b
-        ambiguous = both & (np.abs(da - db) < self.ambiguity_px)
+        with np.errstate(invalid="ignore"):  # inf - inf where neither reference is in the column
+            ambiguous = both & (np.abs(da - db) < self.ambiguity_px)
         is_a = in_a & ~ambiguous & (~in_b | (da < db))
         is_b = in_b & ~ambiguous & ~is_a
         unmatched = ~merged & ~in_a & ~in_b

@@ -13,7 +13,7 @@ from scipy.special import erf
 
 from crossline.framestream import decode_png, fast_decoder_available, map_frames, read_frame
 from crossline.imageio import ImageError
-from crossline.stripes import EDGE, MERGED, SATURATED, grey_centre, steger
+from crossline.stripes import CLOSE, EDGE, MERGED, SATURATED, gaussian, grey_centre, steger
 
 H, W = 120, 200
 
@@ -151,6 +151,92 @@ def test_backends_agree_on_a_crossing_frame():
     a, b = grey_centre(img, backend="numba"), grey_centre(img, backend="numpy")
     for k in a:
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+# ----------------------------------------------------------------------------- Gaussian fit
+
+
+def test_gaussian_symmetric_is_unbiased():
+    t = phases()
+    c = gaussian(profile_image([t]))
+    assert c["u"].size == W and np.all(c["flags"] == 0)
+    assert np.sqrt(np.mean(err_of(c, t) ** 2)) < 0.01
+
+
+def speckled_columns(n=4000, contrast=0.15, noise=20.0, peak=20000.0, sigma=2.2, seed=7):
+    """16-bit columns of one point-sampled Gaussian stripe with multiplicative (speckle-like)
+    and additive noise, the model the fit assumes; returns (image, true centres, model)."""
+    rng = np.random.default_rng(seed)
+    t = 60.0 + rng.uniform(-0.5, 0.5, n)
+    r = np.arange(H, dtype=float)[:, None]
+    mu = peak * np.exp(-0.5 * ((r - t[None, :]) / sigma) ** 2)
+    img = 500.0 + mu * (1 + contrast * rng.standard_normal(mu.shape)) + noise * rng.standard_normal(mu.shape)
+    return np.clip(np.round(img), 0, 65535).astype(np.uint16), t, mu
+
+
+def wls_bound(mu_col, t, contrast, noise, peak, sigma, pad, threshold=0.15, bg=500.0):
+    """Cramer-Rao variance of the centre for weighted least squares with the true weights over
+    the fit window (run above the threshold + pad), computed from the model alone."""
+    above = np.nonzero(mu_col + bg > threshold * 65535)[0]
+    r = np.arange(above[0] - pad, above[-1] + pad + 1)
+    z = (r - t) / sigma
+    e = np.exp(-0.5 * z * z)
+    J = np.stack([e, peak * e * z / sigma, peak * e * z * z / sigma], 1)
+    w = 1.0 / (contrast**2 * (peak * e) ** 2 + noise**2)
+    return np.linalg.inv(J.T @ (J * w[:, None]))[1, 1]
+
+
+def test_gaussian_reaches_the_bound_and_estimates_the_noise():
+    img, t, mu = speckled_columns()
+    c, info = gaussian(img, return_info=True)
+    assert c["u"].size == t.size
+    rms = np.sqrt(np.mean((c["v"] - t[c["u"].astype(int)]) ** 2))
+    bound = np.sqrt(np.mean([wls_bound(mu[:, k], t[k], 0.15, 20.0, 20000.0, 2.2, 6) for k in range(300)]))
+    # efficient: within 10 % of the bound (measured 4 %); the paper's grey centre is far off it
+    assert rms < 1.10 * bound
+    g = grey_centre(img)
+    assert rms < 0.5 * np.sqrt(np.mean((g["v"] - t[g["u"].astype(int)]) ** 2))
+    # the noise levels it weighted by were found in the image itself
+    assert info["relative_noise"] == pytest.approx(0.15, rel=0.05)
+    assert info["noise_dn"] == pytest.approx(20.0, rel=0.1)
+
+
+def test_gaussian_fixed_relative_noise_is_used():
+    img, t, _ = speckled_columns(n=500)
+    _, auto = gaussian(img, return_info=True)
+    c, fixed = gaussian(img, relative_noise=0.3, return_info=True)
+    assert fixed["relative_noise"] == 0.3 and auto["relative_noise"] != 0.3
+    assert np.sqrt(np.mean((c["v"] - t[c["u"].astype(int)]) ** 2)) < 0.1
+
+
+def test_gaussian_saturated_leaves_clipped_pixels_out():
+    t = phases()
+    c = gaussian(profile_image([t], sigma=2.0, peak=900))  # flat top over ~5 rows
+    assert np.all(c["flags"] & SATURATED)
+    assert np.sqrt(np.mean(err_of(c, t) ** 2)) < 0.03
+
+
+def test_gaussian_two_close_stripes_and_merged():
+    t = phases()
+    c = gaussian(profile_image([t, t + 11.0]))
+    assert c["u"].size == 2 * W and np.all(c["flags"] & CLOSE) and not np.any(c["flags"] & MERGED)
+    assert np.sqrt(np.mean((c["v"][0::2] - t) ** 2)) < 0.05
+    assert np.sqrt(np.mean((c["v"][1::2] - t - 11.0) ** 2)) < 0.05
+    t2 = t.copy()
+    t2[:150] += 30.0
+    t2[150:] += 4.0
+    c = gaussian(profile_image([t, t2]))
+    u = c["u"].astype(int)
+    assert np.all((c["flags"][u < 150] & MERGED) == 0) and np.all((c["flags"][u >= 150] & MERGED) != 0)
+
+
+def test_gaussian_sixteen_bit_and_no_stripe():
+    t = phases()
+    img8 = profile_image([t], noise=1.0)
+    a, b = gaussian(img8), gaussian(img8.astype(np.uint16) * 257)
+    np.testing.assert_allclose(a["v"], b["v"], atol=1e-9)
+    c, info = gaussian(profile_image([], noise=2.0), return_info=True)
+    assert c["u"].size == 0 and np.isnan(info["relative_noise"])
 
 
 def sloped_line_image(slope, v0, sigma=1.4, peak=160.0, noise=0.0, seed=0):

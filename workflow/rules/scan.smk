@@ -15,6 +15,8 @@ rule extract_stripes:
         max_width=config["stripes"]["max_width"],
         sigma=config["stripes"]["sigma"],
         pad=config["stripes"]["pad"],
+        fit_pad=config["stripes"]["fit_pad"],
+        relative_noise=config["stripes"]["relative_noise"],
     log:
         "logs/{capture}/extract_stripes/{scan}.part{i}-of-{n}.log",
     benchmark:
@@ -28,7 +30,8 @@ rule extract_stripes:
         "crossline extract-stripes data/raw/{wildcards.capture} {wildcards.scan} "
         "--out {output.part} --extractor {params.extractor} --threshold {params.threshold} "
         "--min-width {params.min_width} --max-width {params.max_width} --sigma {params.sigma} "
-        "--pad {params.pad} --chunk {wildcards.i}/{wildcards.n} --threads {threads} > {log} 2>&1"
+        "--pad {params.pad} --fit-pad {params.fit_pad} --relative-noise {params.relative_noise} "
+        "--chunk {wildcards.i}/{wildcards.n} --threads {threads} > {log} 2>&1"
 
 
 rule gather_stripes:
