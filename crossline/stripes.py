@@ -105,6 +105,7 @@ BG_PIXELS = 2  # pixels beyond each end of a window that estimate the local back
 BG_FIT_PIXELS = 3  # gaussian: pixels beyond each end of a window that the background line is fitted to
 RELATIVE_NOISE_START = 0.15  # gaussian: relative (speckle) noise of the first fit, before it is estimated
 NEIGHBOUR_DV = 2.5  # largest row step between the same stripe in adjacent columns, px
+RIDGE_FRACTION = 0.5  # Steger: a run's ridge claims weaker than this share of its strongest are dropped
 FRAMES_PER_GROUP = 64  # parquet row group = frames [64k, 64k + 64) of the scan
 
 COLUMNS = ("u", "v", "strength", "peak", "width", "width_n", "nx", "ny", "ridge", "flags")
@@ -873,6 +874,14 @@ def steger(
     else:  # pragma: no cover - numba is a dependency
         seg, r, dv, g0, lam, nx, ny = _steger_nb.__wrapped__(g, col, r0, r1) \
             if hasattr(_steger_nb, "__wrapped__") else _steger_nb(g, col, r0, r1)
+    # a run's real ridges are strong; on the flanks of a speckled stripe the Hessian is barely
+    # negative and a Newton step can land inside its own pixel: such claims (a tenth of the
+    # run's strongest ridge) are not ridges
+    if seg.size:
+        strongest = np.zeros(k)
+        np.minimum.at(strongest, seg, lam)
+        strong = lam <= RIDGE_FRACTION * strongest[seg]
+        seg, r, dv, g0, lam, nx, ny = (a[strong] for a in (seg, r, dv, g0, lam, nx, ny))
     v = r + dv
     u = col[seg].astype(np.float64)
     # one centre per ridge per column: accepted pixels within a pixel are the same ridge;
