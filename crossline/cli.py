@@ -53,6 +53,19 @@ def _auto_or_fraction(text: str) -> float | None:
     return x
 
 
+def _auto_or_count(text: str) -> int | None:
+    """'auto' (None) or a positive integer."""
+    if text.lower() == "auto":
+        return None
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected 'auto' or a positive integer, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected 'auto' or a positive integer, got {text!r}")
+    return n
+
+
 def _threads(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=int, default=1, help="CPU threads to use (default 1)")
 
@@ -326,8 +339,9 @@ def _triangulate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, required=True, help="points parquet to write")
     p.add_argument("--threshold-px", type=float, default=10.0,
                    help="T of eq. 14-15: largest distance to the reference stripe (default 10)")
-    p.add_argument("--max-frame-gap", type=int, default=3,
-                   help="oldest A/B reference frame an AB frame may use, in frames (default 3)")
+    p.add_argument("--max-frame-gap", type=_auto_or_count, default=None,
+                   help="oldest A/B reference frame an AB frame may use, in frames, or 'auto' "
+                        "(default): one more than the scan's laser pattern needs (3 for A, B, AB)")
     p.add_argument("--ambiguity-px", type=float, default=3.0,
                    help="drop an AB centre whose distances to both references (both within T) "
                         "differ by less than this (default 3; 0 = the paper's nearest-wins rule)")

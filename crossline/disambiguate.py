@@ -36,7 +36,7 @@ import numpy as np
 from crossline.errors import StageError
 from crossline.stripes import MERGED
 
-__all__ = ["DROP_REASONS", "Disambiguator", "disambiguate", "nearest_in_column"]
+__all__ = ["DROP_REASONS", "Disambiguator", "disambiguate", "nearest_in_column", "reference_gap"]
 
 DROP_REASONS = ("off_frame", "merged", "no_reference", "unmatched", "ambiguous", "conflict")
 _BIG = 1.0e6  # key = u * _BIG + v orders centres by column, then row (|v| < 1e5 px)
@@ -232,6 +232,23 @@ def disambiguate(
         label[a:b] = lab
         dist[a:b] = dd
     return label, dist, d.counts
+
+
+def reference_gap(period: list[str]) -> int:
+    """Frames from an AB frame back to its older reference (A or B), at worst, in a periodic pattern.
+
+    ``["A", "B", "AB"]`` gives 2, ``["A", "B", "AB", "AB"]`` 3; a pattern without AB frames 1.
+    """
+    n = len(period)
+    gap = 1
+    for i, state in enumerate(period):
+        if state != "AB":
+            continue
+        for laser in ("A", "B"):
+            back = [k for k in range(1, n + 1) if period[(i - k) % n] == laser]
+            if back:
+                gap = max(gap, back[0])
+    return gap
 
 
 def check_pattern(states: np.ndarray, scan: str) -> None:

@@ -26,7 +26,7 @@ import pyarrow.parquet as pq
 from crossline.atomic import atomic_path, write_json
 from crossline.camera import Camera
 from crossline.centreline import link_traces, smooth_along, trace_position
-from crossline.disambiguate import Disambiguator, check_pattern
+from crossline.disambiguate import Disambiguator, check_pattern, reference_gap
 from crossline.errors import StageError
 from crossline.laser import LaserPlanes
 from crossline.stripes import read_stripes_meta
@@ -116,7 +116,7 @@ def run_triangulate(
     out: str | Path,
     *,
     threshold_px: float = 10.0,
-    max_frame_gap: int = 3,
+    max_frame_gap: int | None = None,
     ambiguity_px: float = 3.0,
     predict: bool = True,
     end_trim_px: float = 8.0,
@@ -129,6 +129,8 @@ def run_triangulate(
     as JSON to ``stats`` (default: ``out`` with the suffix ``.json``). Centres within
     ``end_trim_px`` pixels (along the stripe) of the end of their trace are dropped; ``smooth_px`` > 1 smooths
     the centre line along each trace over that many columns (:mod:`crossline.centreline`).
+    ``max_frame_gap=None`` allows one frame more than the scan's own laser pattern needs
+    (:func:`crossline.disambiguate.reference_gap`): 3 for the paper's A, B, AB.
     """
     from crossline.capture import laser_pattern, open_capture
 
@@ -147,6 +149,9 @@ def run_triangulate(
     pos_of = {int(f): i for i, f in enumerate(sc.frames)}
     by_number = np.argsort(sc.frames, kind="stable")
     sorted_frames = sc.frames[by_number]
+    pat = laser_pattern(sc.lasers)
+    if max_frame_gap is None:  # one dropped or repeated frame is tolerated
+        max_frame_gap = reference_gap(pat["period"]) + 1
     dis = Disambiguator(threshold_px, max_frame_gap, ambiguity_px, predict)
     pf = pq.ParquetFile(stripes)
     next_pos = 0  # frames before this scan position have been given to the disambiguator
@@ -229,7 +234,6 @@ def run_triangulate(
         feed_until(len(sc.frames))
         counts = dict(dis.counts)
         counts["trimmed"] = dict(trimmed)  # labelled, then dropped: stripe ends and short traces
-        pat = laser_pattern(sc.lasers)
         meta = {
             "scan": scan,
             "extractor": smeta.get("extractor"),

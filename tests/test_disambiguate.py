@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from crossline.disambiguate import Disambiguator, disambiguate, nearest_in_column
+from crossline.disambiguate import Disambiguator, disambiguate, nearest_in_column, reference_gap
 from crossline.errors import StageError
 from crossline.stripes import MERGED
 
@@ -184,3 +184,26 @@ def test_frames_out_of_order_rejected():
     with pytest.raises(StageError, match="frame order"):
         disambiguate(np.array([1, 0]), np.array([1.0, 1.0]), np.array([1.0, 2.0]),
                      np.zeros(2, np.uint8), np.array([0, 1]), np.array(["A", "B"]))
+
+
+@pytest.mark.parametrize(("period", "gap"), [(["A", "B", "AB"], 2), (["A", "B", "AB", "AB"], 3),
+                                             (["A", "B", "AB", "AB", "AB", "AB"], 5),
+                                             (["AB", "A", "B"], 2), (["A", "B"], 1), (["A", "AB"], 1)])
+def test_reference_gap_of_a_pattern(period, gap):
+    assert reference_gap(period) == gap
+
+
+def test_more_ab_frames_per_period_labelled_with_the_pattern_gap():
+    """A, B and four AB frames: the last AB frame's references are 5 and 4 frames old; with the
+    gap the pattern needs every AB frame is labelled (right), with the paper's 3 two are lost."""
+    states = ["A", "B", "AB", "AB", "AB", "AB"] * 6
+    t = build(states, speed=0.4)
+    gap = reference_gap(states[:6]) + 1
+    label, _, counts = run(states, t, threshold_px=10, ambiguity_px=3, max_frame_gap=gap)
+    done = label != ""
+    assert np.all(label[done] == t["truth"][done])
+    assert counts["AB_frames_without_reference"] == {"A": 0, "B": 0}
+    ab = np.isin(t["frame"], np.flatnonzero(np.array(states) == "AB"))
+    assert np.all(done[ab & (sep(t) > 6)])
+    _, _, tight = run(states, t, threshold_px=10, ambiguity_px=3, max_frame_gap=3)
+    assert tight["AB_frames_without_reference"]["A"] == 2 * 6
