@@ -105,6 +105,7 @@ BG_PIXELS = 2  # pixels beyond each end of a window that estimate the local back
 BG_FIT_PIXELS = 3  # gaussian: pixels beyond each end of a window that the background line is fitted to
 RELATIVE_NOISE_START = 0.15  # gaussian: relative (speckle) noise of the first fit, before it is estimated
 NEIGHBOUR_DV = 2.5  # largest row step between the same stripe in adjacent columns, px
+STEEP_LENGTH_RATIO = 0.67  # runs of a steep stripe in adjacent columns differ in length by less
 RIDGE_FRACTION = 0.5  # Steger: a run's ridge claims weaker than this share of its strongest are dropped
 FRAMES_PER_GROUP = 64  # parquet row group = frames [64k, 64k + 64) of the scan
 
@@ -182,10 +183,14 @@ def _gaps(col: np.ndarray, r0: np.ndarray, r1: np.ndarray, H: int) -> tuple[np.n
     return gap_up, gap_dn
 
 
-def _slopes(u: np.ndarray, v: np.ndarray, H: int) -> np.ndarray:
+def _slopes(u: np.ndarray, v: np.ndarray, H: int, width: np.ndarray) -> np.ndarray:
     """Local slope dv/du of each centre from the nearest centres of the adjacent columns.
 
-    Centres must be sorted by (u, v). A centre with no neighbour gets slope 0.
+    A neighbour is the same stripe if it lies within NEIGHBOUR_DV rows, or, for a steep stripe
+    (whose runs are long and move by about their length per column), within the run's length
+    with a run of similar length (a merged crossing next to a single stripe is not similar).
+    Centres must be sorted by (u, v); ``width`` is each centre's run length. A centre with
+    no neighbour gets slope 0.
     """
     n = u.size
     if n == 0:
@@ -198,6 +203,7 @@ def _slopes(u: np.ndarray, v: np.ndarray, H: int) -> np.ndarray:
         j = np.searchsorted(key, q)
         best = np.full(n, np.inf)
         bv = np.full(n, np.nan)
+        bw = np.full(n, np.nan)
         for jj in (j - 1, j):
             ok = (jj >= 0) & (jj < n)
             jc = np.clip(jj, 0, n - 1)
@@ -205,7 +211,11 @@ def _slopes(u: np.ndarray, v: np.ndarray, H: int) -> np.ndarray:
             better = d < best
             best = np.where(better, d, best)
             bv = np.where(better, v[jc], bv)
-        vals.append(np.where(best <= NEIGHBOUR_DV, bv, np.nan))
+            bw = np.where(better, width[jc], bw)
+        with np.errstate(invalid="ignore"):
+            similar = (bw >= STEEP_LENGTH_RATIO * width) & (width >= STEEP_LENGTH_RATIO * bw)
+            same = (best <= NEIGHBOUR_DV) | ((best <= width) & similar)
+        vals.append(np.where(same, bv, np.nan))
     left, right = vals
     slope = np.where(
         np.isfinite(left) & np.isfinite(right),
@@ -309,7 +319,7 @@ def _windows_nb(flat, H, col, r0, r1, pad, bg_pixels, full):  # pragma: no cover
 
 
 @_jit
-def _slopes_nb(col, v, W, max_dv):  # pragma: no cover - compiled
+def _slopes_nb(col, v, W, width):  # pragma: no cover - compiled
     """numba twin of :func:`_slopes` (centres sorted by column, then row)."""
     k = col.size
     start = np.zeros(W + 2, np.int64)
@@ -326,13 +336,17 @@ def _slopes_nb(col, v, W, max_dv):  # pragma: no cover - compiled
             cc = c - 1 if side == 0 else c + 1
             best = np.inf
             bv = np.nan
+            bw = np.nan
             if 0 <= cc < W:
                 for j in range(start[cc + 1], start[cc + 2]):
                     d = abs(v[j] - v[i])
                     if d < best:
                         best = d
                         bv = v[j]
-            nb[side] = bv if best <= max_dv else np.nan
+                        bw = width[j]
+            similar = bw >= STEEP_LENGTH_RATIO * width[i] and width[i] >= STEEP_LENGTH_RATIO * bw
+            same = best <= NEIGHBOUR_DV or (best <= width[i] and similar)
+            nb[side] = bv if same else np.nan
         left = nb[0]
         right = nb[1]
         if np.isfinite(left) and np.isfinite(right):
@@ -431,7 +445,7 @@ def grey_centre(
     u = col.astype(np.float64)
     width = (r1 - r0 + 1).astype(np.float64)
     vv = np.where(good, v, 0.5 * (r0 + r1))
-    slope = _slopes_nb(col, vv, W, NEIGHBOUR_DV) if nb else _slopes(u, vv, H)
+    slope = _slopes_nb(col, vv, W, width) if nb else _slopes(u, vv, H, width)
     ny = 1.0 / np.sqrt(1.0 + slope * slope)
     nx = -slope * ny
     width_n = width * ny
@@ -481,9 +495,11 @@ def _gauss_windows_nb(flat, H, col, r0, r1, ext, nbg):  # pragma: no cover - com
                 flags[i] |= 2
         if r0[i] == 0 or r1[i] == H - 1:
             flags[i] |= 8
-        # the window and its background pixels stay on this run's side of the gap's midpoint
-        lo = r0[i] - max(min(ext, gu // 2 - nbg), 0)
-        hi = r1[i] + max(min(ext, gd // 2 - nbg), 0)
+        # the window and its background pixels stay on this run's side of the gap's midpoint;
+        # a steep stripe's long run has long tails along the column: the reach grows with it
+        reach = max(ext, (r1[i] - r0[i] + 1) // 2)
+        lo = r0[i] - max(min(reach, gu // 2 - nbg), 0)
+        hi = r1[i] + max(min(reach, gd // 2 - nbg), 0)
         lo_w[i] = lo
         hi_w[i] = hi
         base = c * H
@@ -714,7 +730,7 @@ def gaussian(
     u = col.astype(np.float64)
     width = (r1 - r0 + 1).astype(np.float64)
     v = np.where(ok, c, np.nan)
-    slope = _slopes_nb(col, np.where(ok, c, 0.5 * (r0 + r1)), W, NEIGHBOUR_DV)
+    slope = _slopes_nb(col, np.where(ok, c, 0.5 * (r0 + r1)), W, width)
     ny = 1.0 / np.sqrt(1.0 + slope * slope)
     nx = -slope * ny
     clean = (flags & (CLOSE | EDGE)) == 0
@@ -930,7 +946,7 @@ def steger(
 def _run_ny(col: np.ndarray, r0: np.ndarray, r1: np.ndarray, W: int) -> np.ndarray:
     """|n_y| of each run's stripe from the run middles of the adjacent columns."""
     mid = 0.5 * (r0 + r1).astype(np.float64)
-    slope = _slopes_nb(col, mid, W, NEIGHBOUR_DV)
+    slope = _slopes_nb(col, mid, W, (r1 - r0 + 1).astype(np.float64))
     return 1.0 / np.sqrt(1.0 + slope * slope)
 
 

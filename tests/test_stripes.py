@@ -271,6 +271,20 @@ def test_steger_sloped_line(slope):
     assert abs(np.median(c["width_n"][inner]) - 2.3548 * 1.4) < 0.35
 
 
+@pytest.mark.parametrize("extract", [grey_centre, gaussian])
+@pytest.mark.parametrize("slope", [2.0, 3.0, -4.0])
+def test_steep_stripe_is_one_stripe_not_merged(extract, slope):
+    """A steep stripe's run in a column is long and its neighbours are several rows away: it
+    is still one stripe (right normal, not MERGED), whereas a crossing's blob is merged."""
+    img, t = sloped_line_image(slope, 60.3)
+    c = extract(img)
+    inner = (c["v"] > 28) & (c["v"] < 92)
+    assert inner.sum() >= 10
+    assert not np.any(c["flags"][inner] & MERGED)
+    np.testing.assert_allclose(c["ny"][inner], 1 / np.hypot(1, slope), rtol=0.02)
+    assert np.sqrt(np.mean(err_of(c, t)[inner] ** 2)) < 0.05
+
+
 def test_steger_speckled_stripe_one_centre_per_column_on_the_ridge():
     """Speckle makes the flanks of a stripe ridge-like here and there; those weak claims are
     not stripe centres (kept, they gave a second centre in many columns, pixels off the line)."""
