@@ -351,6 +351,9 @@ def _triangulate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--end-trim-px", type=float, default=8.0,
                    help="drop centres closer than this (px along the stripe) to the end of their "
                         "stripe trace, where the cut-off cross-section biases them (default 8)")
+    p.add_argument("--bridge-columns", type=int, default=8,
+                   help="interpolate a reference stripe over gaps of up to this many columns "
+                        "before AB centres are matched to it (default 8; 0 = off, the paper)")
     p.add_argument("--smooth-px", type=int, default=1,
                    help="smooth each centre line along the stripe over this many columns "
                         "(odd; local quadratic; default 1 = off)")
@@ -364,7 +367,7 @@ def _triangulate(p: argparse.ArgumentParser) -> None:
             a.capture, a.scan, a.stripes, a.camera, a.lasers, a.handeye, a.out,
             threshold_px=a.threshold_px, max_frame_gap=a.max_frame_gap,
             ambiguity_px=a.ambiguity_px, predict=a.predict, end_trim_px=a.end_trim_px,
-            smooth_px=a.smooth_px, stats=a.stats,
+            smooth_px=a.smooth_px, bridge_columns=a.bridge_columns, stats=a.stats,
         )
         return 0
 

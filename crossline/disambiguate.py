@@ -17,8 +17,9 @@ within ``T`` px (the nearest if both are). Beyond the paper:
   distances differ by less than ``ambiguity_px`` (near the crossing of the stripes, where A and
   B are only a few pixels apart) the centre is dropped as ambiguous instead of guessed;
   ``ambiguity_px = 0`` is the paper's rule;
-- **one centre per laser per column**: if two AB centres of one column get the same laser,
-  only the nearest to the reference keeps it (the other is a conflict, dropped);
+- **one centre per reference centre**: if two AB centres of one column are matched to the same
+  reference centre, only the nearer keeps the label (the other is a conflict, dropped); two
+  segments of one laser in one column (at a step) have two reference centres and both stay;
 - merged segments (flag ``MERGED`` from the extractor: two stripes in one blob) of AB frames
   are dropped, centres of ``off`` frames are dropped; every drop is counted by reason.
 
@@ -36,7 +37,8 @@ import numpy as np
 from crossline.errors import StageError
 from crossline.stripes import MERGED
 
-__all__ = ["DROP_REASONS", "Disambiguator", "disambiguate", "nearest_in_column", "reference_gap"]
+__all__ = ["DROP_REASONS", "Disambiguator", "bridge_gaps", "disambiguate", "nearest_in_column",
+           "reference_gap"]
 
 DROP_REASONS = ("off_frame", "merged", "no_reference", "unmatched", "ambiguous", "conflict")
 _BIG = 1.0e6  # key = u * _BIG + v orders centres by column, then row (|v| < 1e5 px)
@@ -76,9 +78,71 @@ class _Ref:
     v: np.ndarray
 
 
-def _sorted_ref(frame: int, u: np.ndarray, v: np.ndarray) -> _Ref:
+def _sorted_ref(frame: int, u: np.ndarray, v: np.ndarray, bridge: int = 0) -> _Ref:
     o = np.lexsort((v, u))
-    return _Ref(frame, u[o], v[o])
+    u, v = u[o], v[o]
+    if bridge > 1:
+        u, v = bridge_gaps(u, v, bridge)
+    return _Ref(frame, u, v)
+
+
+def bridge_gaps(
+    u: np.ndarray, v: np.ndarray, max_gap: int, step_px: float = 2.5, kink_px: float = 1.5
+) -> tuple[np.ndarray, np.ndarray]:
+    """A reference line with its short gaps filled: centres (sorted by u, v) plus the rows,
+    linearly interpolated, of the columns missing between two centres of the same stripe.
+
+    A faint or speckled stripe falls below the threshold in a column here and there; without
+    a reference in that column an AB centre there could not be labelled. A centre with no
+    successor in the next column is joined to the first centre up to ``max_gap`` columns on
+    whose step per column continues its own (within ``kink_px`` rows) or, with no step known,
+    is at most ``step_px``; a jump (an edge, a step, another surface) is not bridged.
+    Returns (u, v) sorted by (u, v).
+    """
+    n = u.size
+    if n < 2 or max_gap < 2:
+        return u, v
+    big = 1.0e6
+    key = u * big + v
+
+    def nearest(du: int, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        q = (u + du) * big + target
+        j = np.searchsorted(key, q)
+        best = np.full(n, np.inf)
+        idx = np.full(n, -1)
+        for jj in (j - 1, j):
+            jc = np.clip(jj, 0, n - 1)
+            ok = (jj >= 0) & (jj < n) & (u[jc] == u + du)
+            d = np.where(ok, np.abs(v[jc] - target), np.inf)
+            better = d < best
+            best, idx = np.where(better, d, best), np.where(better, jc, idx)
+        return idx, best
+
+    _, d_next = nearest(1, v)
+    j_prev, d_prev = nearest(-1, v)
+    step = np.where(d_prev <= step_px + kink_px, v - v[np.maximum(j_prev, 0)], np.nan)
+    open_end = ~(d_next <= step_px + kink_px)
+    fill_u, fill_v = [], []
+    done = ~open_end
+    for g in range(2, max_gap + 1):
+        if done.all():
+            break
+        # where the stripe would be g columns on: continued with its step, or level
+        target = v + g * np.nan_to_num(step)
+        j, d = nearest(g, target)
+        tol = np.where(np.isfinite(step), kink_px * g, step_px * g)
+        hit = np.flatnonzero(~done & (d <= tol))
+        k = np.tile(np.arange(1, g), hit.size)
+        i = np.repeat(hit, g - 1)
+        fill_u.append(u[i] + k)
+        fill_v.append(v[i] + (v[j[i]] - v[i]) * k / g)
+        done[hit] = True
+    if not fill_u:
+        return u, v
+    uu = np.concatenate([u, *fill_u])
+    vv = np.concatenate([v, *fill_v])
+    o = np.lexsort((vv, uu))
+    return uu[o], vv[o]
 
 
 @dataclass
@@ -89,6 +153,7 @@ class Disambiguator:
     max_frame_gap: int = 3
     ambiguity_px: float = 3.0
     predict: bool = True
+    bridge_columns: int = 0
     refs: dict[str, list[_Ref]] = field(default_factory=lambda: {"A": [], "B": []})
     counts: dict[str, Any] = field(default_factory=dict)
 
@@ -147,7 +212,7 @@ class Disambiguator:
         if state in ("A", "B"):
             label[:] = state
             c["labelled"][state] += n
-            self.refs[state] = [*self.refs[state][-1:], _sorted_ref(frame, u, v)]
+            self.refs[state] = [*self.refs[state][-1:], _sorted_ref(frame, u, v, self.bridge_columns)]
             return label, dist
         if state == "off":
             c["dropped"]["off_frame"] += n
@@ -163,8 +228,8 @@ class Disambiguator:
         merged = (flags & MERGED) != 0
         c["dropped"]["merged"] += int(merged.sum())
         (ua, va), (ub, vb) = ref["A"], ref["B"]
-        _, da = nearest_in_column(ua, va, u, v)
-        _, db = nearest_in_column(ub, vb, u, v)
+        ja, da = nearest_in_column(ua, va, u, v)
+        jb, db = nearest_in_column(ub, vb, u, v)
         T = self.threshold_px
         in_a = (da <= T) & ~merged
         in_b = (db <= T) & ~merged
@@ -181,12 +246,16 @@ class Disambiguator:
         c["dropped"]["unmatched"] += int(unmatched.sum())
         c["dropped"]["ambiguous"] += int(ambiguous.sum())
         d = np.where(is_a, da, np.where(is_b, db, np.inf))
-        # one centre per laser per column: keep the nearest
+        # one centre per reference centre: two AB centres matched to the same reference centre
+        # cannot both be that stripe, the nearer keeps it (two segments of one laser in one
+        # column, at a step or an occlusion, have two reference centres and both stay)
         lab = np.where(is_a, 1, np.where(is_b, 2, 0))
+        ref_idx = np.where(is_a, ja, np.where(is_b, jb, -1))
         if n > 1:
-            o = np.lexsort((d, lab, u))
+            o = np.lexsort((d, ref_idx, lab, u))
             dup = np.zeros(n, bool)
-            dup[o[1:]] = (u[o[1:]] == u[o[:-1]]) & (lab[o[1:]] == lab[o[:-1]]) & (lab[o[1:]] > 0)
+            dup[o[1:]] = ((u[o[1:]] == u[o[:-1]]) & (lab[o[1:]] == lab[o[:-1]]) & (lab[o[1:]] > 0)
+                          & (ref_idx[o[1:]] == ref_idx[o[:-1]]))
             c["dropped"]["conflict"] += int(dup.sum())
             lab = np.where(dup, 0, lab)
         label[lab == 1] = "A"

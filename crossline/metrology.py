@@ -41,6 +41,7 @@ __all__ = [
     "compare_lasers",
     "deviation_stats",
     "fit_plane",
+    "label_errors",
     "laser_codes",
     "laser_plane_error",
     "measure_gauge_block",
@@ -874,6 +875,56 @@ def deviation_stats(dev: np.ndarray, band_mm: float = 0.05) -> dict[str, Any]:
 
 
 # ----------------------------------------------------------------------------- against truth
+
+
+def label_errors(
+    frame: np.ndarray, laser: np.ndarray, u: np.ndarray, v: np.ndarray,
+    true_frame: np.ndarray, true_laser: np.ndarray, true_u: np.ndarray, true_v: np.ndarray,
+    *, near_px: float = 3.0, crossing_px: float = 15.0,
+) -> dict[str, Any]:
+    """Wrong A/B labels of stripe points (px) against the true centre lines of their frames.
+
+    A point is checked where one true line of its frame passes within ``near_px`` of it in its
+    column (``round(u)``) and the other does not; its true laser is that line's. Points where
+    the two true lines are within ``crossing_px`` of each other are the crossing band, counted
+    apart.
+    """
+    frame = np.asarray(frame, dtype=np.int64)
+    col = np.rint(np.asarray(u, dtype=np.float64)).astype(np.int64)
+    v = np.asarray(v, dtype=np.float64)
+    laser = np.asarray(laser).astype(str)
+    tf = np.asarray(true_frame, dtype=np.int64)
+    tu = np.asarray(true_u, dtype=np.int64)
+    tv = np.asarray(true_v, dtype=np.float64)
+    tl = np.asarray(true_laser).astype(str)
+    span = int(max(col.max(initial=0), tu.max(initial=0))) + 2
+    query = frame * span + col
+    true_row = {}
+    for name in ("A", "B"):
+        m = tl == name
+        true_row[name] = np.full(query.size, np.nan)
+        if not m.any():
+            continue
+        key = tf[m] * span + tu[m]
+        order = np.argsort(key, kind="stable")
+        key, rows = key[order], tv[m][order]
+        j = np.minimum(np.searchsorted(key, query), key.size - 1)
+        hit = key[j] == query
+        true_row[name][hit] = rows[j[hit]]
+    da = np.abs(v - true_row["A"])
+    db = np.abs(v - true_row["B"])
+    with np.errstate(invalid="ignore"):
+        # where both true lines pass within near_px the point could be either: not checked
+        checked = (np.fmin(da, db) <= near_px) & ~(np.maximum(da, db) <= near_px)
+        truth = np.where(np.nan_to_num(da, nan=np.inf) <= np.nan_to_num(db, nan=np.inf), "A", "B")
+        crossing = np.abs(true_row["A"] - true_row["B"]) < crossing_px
+    wrong = checked & (laser != truth)
+    n_checked = int(checked.sum())
+    return {"points": int(frame.size), "checked": n_checked, "wrong": int(wrong.sum()),
+            "wrong_away_from_crossing": int((wrong & ~crossing).sum()),
+            "wrong_in_crossing_band": int((wrong & crossing).sum()),
+            "wrong_rate": float(wrong.sum() / n_checked) if n_checked else None,
+            "near_px": near_px, "crossing_px": crossing_px}
 
 
 def volume_points(

@@ -436,6 +436,8 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
     except ValueError as exc:
         out["error"] = str(exc)
         log.warning("scan %s: %s", sd.name, exc)
+    if tscan and tscan.get("centrelines") and sd.points_path is not None:
+        out["truth_labels"] = _label_truth(sd.points_path, root / str(tscan["centrelines"]), files)
 
     # top view, coloured by height (above the artefact's reference plane, else along `up`)
     if height_ref is not None:
@@ -449,6 +451,28 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
     B = _basis(axis)
     sd.plots["top"] = {"xy": P @ B.T, "h": heights}
     return out
+
+
+def _label_truth(points: Path, centrelines: Path, files: list) -> dict[str, Any] | None:
+    """Wrong A/B labels of the AB-frame points against the simulator's true centre lines."""
+    import pandas as pd
+
+    from crossline import metrology as mt
+
+    if not centrelines.is_file():
+        return None
+    files.append(("capture", f"truth/{centrelines.name}", centrelines))
+    try:
+        p = pd.read_parquet(points, columns=["frame", "laser", "lasers", "u", "v"])
+        t = pd.read_parquet(centrelines, columns=["frame", "laser", "u", "v", "visible"])
+    except Exception as exc:  # pyarrow raises several types for broken files
+        log.warning("label validation skipped: %s", exc)
+        return None
+    p = p[p["lasers"] == "AB"]
+    t = t[t["visible"]]
+    return mt.label_errors(p["frame"].to_numpy(), p["laser"].to_numpy(), p["u"].to_numpy(),
+                           p["v"].to_numpy(), t["frame"].to_numpy(), t["laser"].to_numpy(),
+                           t["u"].to_numpy(), t["v"].to_numpy())
 
 
 def _viewpoints(sd: ScanData) -> np.ndarray | None:
@@ -769,6 +793,15 @@ def build_report(
         m = s.get("measurement") or {}
         ab = (s.get("a_vs_b") or {}).get("A_minus_B", {})
         err = s.get("error", "")
+        gain = (s.get("counts") or {}).get("gain_over_single_line")
+        if (s.get("counts") or {}).get("by_state", {}).get("AB"):
+            # throughput, not accuracy: shown beside the paper's 4/3, never a FAIL
+            _check(rows, "gain_over_single_line", "points per frame over a single line (paper: 1.33)",
+                   name, gain, "×", None)
+        lt = s.get("truth_labels")
+        if lt and lt.get("checked"):
+            _check(rows, "wrong_labels", "AB frames: wrong A/B labels (vs truth)", name,
+                   lt["wrong"], "", None)
         if sd.artefact == "gauge_block":
             _check(rows, "gauge_mean_error_mm", "gauge height: mean − nominal", name,
                    m.get("error_mm"), "mm", tol["gauge_mean_error_mm"], use_abs=True, note=err)

@@ -959,6 +959,24 @@ def page_validation(m: dict[str, Any], plots: dict[str, Any]) -> list[Figure]:
                 aligns=["left", "left", "left"], size=7.6)
     else:
         p.text("No scan has true geometry in truth.json.", color=COLOURS["N/A"])
+    rows = []
+    ref: dict[str, Any] = {}
+    for name, s in m["scans"].items():
+        lt = s.get("truth_labels")
+        if lt and lt.get("checked"):
+            ref = lt
+            rows.append([name, f"{fmt(lt['checked'])} of {fmt(lt['points'])}",
+                         f"{fmt(lt['wrong'])} ({fmt(lt['wrong_rate'], '%')})",
+                         f"{fmt(lt['wrong_away_from_crossing'])} / {fmt(lt['wrong_in_crossing_band'])}"])
+    if rows:
+        p.gap(0.1)
+        p.text("A/B labels of the AB frames against the true centre lines", size=10, weight="bold")
+        p.text("A point is checked where one true line passes within "
+               f"{fmt(ref['near_px'], 'px', 1)} of it in its column and the other does not; the "
+               f"crossing band is where the two true lines are within {fmt(ref['crossing_px'], 'px', 0)}.",
+               size=8)
+        p.table(["Scan", "AB points checked", "wrong labels", "away / in crossing band"], rows,
+                [LEFT, LEFT + 0.14, LEFT + 0.42, LEFT + 0.62], aligns=["left"] * 4, size=7.6)
     figs = [p.fig]
     for name, s in m["scans"].items():
         sp = plots["scans"].get(name, {})

@@ -121,6 +121,7 @@ def run_triangulate(
     predict: bool = True,
     end_trim_px: float = 8.0,
     smooth_px: int = 1,
+    bridge_columns: int = 8,
     stats: str | Path | None = None,
 ) -> dict[str, Any]:
     """Label, triangulate and write the points of one scan; return the counts.
@@ -129,6 +130,8 @@ def run_triangulate(
     as JSON to ``stats`` (default: ``out`` with the suffix ``.json``). Centres within
     ``end_trim_px`` pixels (along the stripe) of the end of their trace are dropped; ``smooth_px`` > 1 smooths
     the centre line along each trace over that many columns (:mod:`crossline.centreline`).
+    Up to ``bridge_columns`` columns missing in a reference stripe between two of its centres
+    are interpolated before AB centres are matched (:func:`crossline.disambiguate.bridge_gaps`).
     ``max_frame_gap=None`` allows one frame more than the scan's own laser pattern needs
     (:func:`crossline.disambiguate.reference_gap`): 3 for the paper's A, B, AB.
     """
@@ -152,7 +155,7 @@ def run_triangulate(
     pat = laser_pattern(sc.lasers)
     if max_frame_gap is None:  # one dropped or repeated frame is tolerated
         max_frame_gap = reference_gap(pat["period"]) + 1
-    dis = Disambiguator(threshold_px, max_frame_gap, ambiguity_px, predict)
+    dis = Disambiguator(threshold_px, max_frame_gap, ambiguity_px, predict, bridge_columns)
     pf = pq.ParquetFile(stripes)
     next_pos = 0  # frames before this scan position have been given to the disambiguator
     n_points = 0
@@ -239,7 +242,8 @@ def run_triangulate(
             "extractor": smeta.get("extractor"),
             "params": {"threshold_px": threshold_px, "max_frame_gap": max_frame_gap,
                        "ambiguity_px": ambiguity_px, "predict": bool(predict),
-                       "end_trim_px": end_trim_px, "smooth_px": smooth_px},
+                       "end_trim_px": end_trim_px, "smooth_px": smooth_px,
+                       "bridge_columns": bridge_columns},
             "points": n_points,
             "frames": len(sc.frames),
             "points_per_frame": n_points / max(len(sc.frames), 1),

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from crossline.disambiguate import Disambiguator, disambiguate, nearest_in_column, reference_gap
+from crossline.disambiguate import Disambiguator, bridge_gaps, disambiguate, nearest_in_column, reference_gap
 from crossline.errors import StageError
 from crossline.stripes import MERGED
 
@@ -207,3 +207,52 @@ def test_more_ab_frames_per_period_labelled_with_the_pattern_gap():
     assert np.all(done[ab & (sep(t) > 6)])
     _, _, tight = run(states, t, threshold_px=10, ambiguity_px=3, max_frame_gap=3)
     assert tight["AB_frames_without_reference"]["A"] == 2 * 6
+
+
+def test_bridge_gaps_fills_a_broken_stripe_not_a_jump():
+    u = np.arange(100.0, 140.0)
+    v = 50 + 0.7 * (u - 100)
+    keep = np.ones(u.size, bool)
+    keep[[5, 6, 7, 20]] = False  # gaps of three columns and of one
+    u2 = np.arange(141.0, 150.0)  # another surface, 150 rows away: a jump
+    bu, bv = bridge_gaps(np.r_[u[keep], u2], np.r_[v[keep], np.full(u2.size, 200.0)], 8)
+    assert sorted(set(bu) - set(u[keep]) - set(u2)) == [105, 106, 107, 120]
+    np.testing.assert_allclose(bv[bu < 140], 50 + 0.7 * (bu[bu < 140] - 100), atol=1e-12)
+    assert np.all(np.diff(bu) >= 0)
+
+
+def test_gappy_reference_still_labels_and_two_segments_of_one_laser_both_stay():
+    """A speckled reference misses columns; a step puts two segments of laser A in the same
+    columns (top face and plate). Bridged references label the AB centres in the gaps, and
+    both A segments keep their label (they match two different reference centres)."""
+    cols = U[(U > 150) & (U < 200)]
+    states = ["A", "B", "AB"] * 4
+    t = build(states)
+    # laser A also lights a second surface 40 rows above in columns 150..200 (clear of B)
+    extra = {k: [] for k in t}
+    for f, s in enumerate(states):
+        if "A" in s:
+            extra["frame"].append(np.full(cols.size, f))
+            extra["u"].append(cols)
+            extra["v"].append(line("A", f)[np.isin(U, cols)] - 40.0)
+            extra["flags"].append(np.zeros(cols.size, np.uint8))
+            extra["truth"].append(np.full(cols.size, "A"))
+    t = {k: np.concatenate([t[k], *extra[k]]) for k in t}
+    # the A frames miss every 7th column (the stripe fell below the threshold there)
+    a_frames = np.isin(t["frame"], np.flatnonzero(np.array(states) == "A"))
+    drop = a_frames & (t["u"] % 7 == 0) & (t["u"] < U[-1])
+    t = {k: x[~drop] for k, x in t.items()}
+    o = np.lexsort((t["v"], t["u"], t["frame"]))
+    t = {k: x[o] for k, x in t.items()}
+    states_a = np.array(states)
+    ab = np.isin(t["frame"], np.flatnonzero(states_a == "AB"))
+    d = Disambiguator(threshold_px=10, max_frame_gap=3, ambiguity_px=3, predict=False, bridge_columns=4)
+    label = np.full(t["u"].size, "", "<U2")
+    for f, s in enumerate(states):
+        m = t["frame"] == f
+        label[m], _ = d.process(f, s, t["u"][m], t["v"][m], t["flags"][m])
+    done = label != ""
+    assert np.all(label[done] == t["truth"][done])
+    away = ab & (sep(t) > 6)
+    assert np.all(done[away])  # the gap columns (u % 7 == 0) included
+    assert d.counts["dropped"]["conflict"] == 0

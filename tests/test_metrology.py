@@ -404,3 +404,21 @@ def test_gauge_referenced_needs_plate_in_the_same_frames():
     frame = np.where(on_top, 1, 2)  # top and plate never in one frame
     with pytest.raises(ValueError, match="cannot reference per frame"):
         mt.measure_gauge_block(pts, 20.0, frame=frame)
+
+
+def test_label_errors_against_true_lines():
+    """Two true lines crossing at u = 50; three points carry the wrong laser, one of them in the
+    crossing band; points where both lines are within reach are not checked."""
+    from crossline.metrology import label_errors
+
+    u = np.arange(100)
+    ta, tb = 100 + 0.5 * (u - 50), 100 - 0.5 * (u - 50)
+    lab = np.array(["A"] * 100 + ["B"] * 100)
+    lab[[10, 160, 44]] = ["B", "A", "B"]  # 44: 6 columns from the crossing, lines 6 px apart
+    r = label_errors(np.zeros(200, int), lab, np.r_[u, u] + 0.2, np.r_[ta, tb] + 0.3,
+                     np.zeros(200, int), np.array(["A"] * 100 + ["B"] * 100), np.r_[u, u],
+                     np.r_[ta, tb])
+    # in columns 47..52 both lines are within 3 px of the point: 2 x 6 points left unchecked
+    assert r["checked"] == 200 - 12
+    assert r["wrong"] == 3 and r["wrong_in_crossing_band"] == 2 and r["wrong_away_from_crossing"] == 1
+    assert r["wrong_rate"] == pytest.approx(3 / 188)

@@ -63,6 +63,9 @@ def test_quick_report_every_section_and_same_bytes(quick_pipeline):
         assert "error" not in s, f"{name}: {s.get('error')}"
         assert s["counts"]["gain_over_single_line"] > 1.0
         assert s.get("truth"), name
+        # every AB-frame point checked against the true centre lines, none with the wrong laser
+        lt = s["truth_labels"]
+        assert lt["checked"] >= 0.9 * lt["points"] > 0 and lt["wrong"] == 0, (name, lt)
     assert {r["id"] for r in m["summary"]} >= {"gauge_mean_error_mm", "gauge_std_mm",
                                                "ab_height_difference_mm", "plane_within_share",
                                                "sphere_size_error_mm", "sphere_form_error_mm"}
@@ -75,6 +78,9 @@ def test_quick_report_pages_show_metrics(quick_pipeline):
     texts = [" ".join(page_texts(f)) for f in build_pages(m, data.plots)]
     for r in m["summary"]:
         assert fmt_row_value(r) in texts[0]
+    validation = next(t for t in texts if "A/B labels of the AB frames against the true" in t)
+    for name, s in m["scans"].items():
+        assert f"{fmt(s['truth_labels']['checked'])} of {fmt(s['truth_labels']['points'])}" in validation
     for name, s in m["scans"].items():
         page = next(t for t in texts if f"Scan '{name}'" in t)
         assert fmt(s["counts"]["gain_over_single_line"], "", 3) in page

@@ -66,6 +66,7 @@ rule triangulate_points:
         predict=config["points"]["predict"],
         end_trim_px=config["points"]["end_trim_px"],
         smooth_px=config["points"]["smooth_px"],
+        bridge_columns=config["points"]["bridge_columns"],
     log:
         "logs/{capture}/triangulate_points/{scan}.log",
     benchmark:
@@ -80,4 +81,5 @@ rule triangulate_points:
         "--handeye {input.handeye} --out {output.points} --threshold-px {params.threshold_px} "
         "--max-frame-gap {params.max_frame_gap} --ambiguity-px {params.ambiguity_px} "
         "--predict {params.predict} --end-trim-px {params.end_trim_px} "
-        "--smooth-px {params.smooth_px} --stats {output.stats} > {log} 2>&1"
+        "--smooth-px {params.smooth_px} --bridge-columns {params.bridge_columns} "
+        "--stats {output.stats} > {log} 2>&1"
