@@ -263,9 +263,9 @@ def _extract_stripes(p: argparse.ArgumentParser) -> None:
     p.add_argument("capture", type=Path, help="capture folder")
     p.add_argument("scan", help="scan name (a folder under scans/)")
     p.add_argument("--out", type=Path, required=True, help="stripes parquet to write")
-    p.add_argument("--extractor", choices=("grey_centre", "gaussian", "steger"), default="grey_centre",
-                   help="grey_centre: the paper's eq. 9; gaussian: weighted least-squares Gaussian "
-                        "profile (speckle-aware); steger: Hessian ridge detector")
+    p.add_argument("--extractor", choices=("grey_centre", "gaussian", "steger"), default="gaussian",
+                   help="gaussian (default): weighted least-squares Gaussian profile, speckle-aware; "
+                        "grey_centre: the paper's eq. 9; steger: Hessian ridge detector")
     p.add_argument("--threshold", type=float, default=0.15,
                    help="stripe threshold as a fraction of full scale (default 0.15)")
     p.add_argument("--min-width", type=float, default=2.0, help="narrowest stripe, px")
@@ -354,9 +354,9 @@ def _triangulate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bridge-columns", type=int, default=8,
                    help="interpolate a reference stripe over gaps of up to this many columns "
                         "before AB centres are matched to it (default 8; 0 = off, the paper)")
-    p.add_argument("--smooth-px", type=int, default=1,
+    p.add_argument("--smooth-px", type=int, default=5,
                    help="smooth each centre line along the stripe over this many columns "
-                        "(odd; local quadratic; default 1 = off)")
+                        "(odd; local quadratic; default 5; 1 = off)")
     p.add_argument("--stats", type=Path,
                    help="JSON of the labelling counts (default: --out with suffix .json)")
 

@@ -79,7 +79,7 @@ def test_quick_report_pages_show_metrics(quick_pipeline):
     for r in m["summary"]:
         assert fmt_row_value(r) in texts[0]
     validation = next(t for t in texts if "A/B labels of the AB frames against the true" in t)
-    for name, s in m["scans"].items():
+    for s in m["scans"].values():
         assert f"{fmt(s['truth_labels']['checked'])} of {fmt(s['truth_labels']['points'])}" in validation
     for name, s in m["scans"].items():
         page = next(t for t in texts if f"Scan '{name}'" in t)
