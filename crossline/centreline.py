@@ -14,9 +14,8 @@ All functions take parallel arrays (one entry per centre) and return arrays.
 from __future__ import annotations
 
 import numpy as np
-from scipy.signal import savgol_coeffs
 
-__all__ = ["link_traces", "smooth_along", "trace_position"]
+__all__ = ["blocked_ends", "link_traces", "smooth_along", "trace_position"]
 
 
 def _keys(frame: np.ndarray, laser: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -110,13 +109,55 @@ def trace_position(
     return root, start, end
 
 
+def blocked_ends(
+    trace: np.ndarray, frame: np.ndarray, u: np.ndarray, v: np.ndarray,
+    block_frame: np.ndarray, block_u: np.ndarray, block_v: np.ndarray, max_step_px: float = 8.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Whether each centre's trace starts / ends against a blocker (per centre, broadcast).
+
+    A trace that stops because the next column holds a blocker near its row (a merged run at
+    the crossing of A and B, where both stripes are in one blob) has not reached the end of
+    its stripe: its cross-section is not cut off there, the other stripe is beside it.
+    """
+    n = len(u)
+    if n == 0 or len(block_u) == 0:
+        return np.zeros(n, bool), np.zeros(n, bool)
+    col = np.rint(np.asarray(u, dtype=np.float64)).astype(np.int64)
+    bcol = np.rint(np.asarray(block_u, dtype=np.float64)).astype(np.int64)
+    span = int(max(col.max(), bcol.max())) + 3
+    bkey = np.asarray(block_frame, dtype=np.int64) * span + bcol + 1
+    order = np.lexsort((np.asarray(block_v, dtype=np.float64), bkey))
+    bkey, bv = bkey[order], np.asarray(block_v, dtype=np.float64)[order]
+    first = np.full(n, np.iinfo(np.int64).max)
+    last = np.full(n, -1)
+    np.minimum.at(first, trace, col)
+    np.maximum.at(last, trace, col)
+    out = []
+    for end, du in ((first, -1), (last, 1)):
+        at_end = col == end[trace]
+        q = np.asarray(frame, dtype=np.int64) * span + col + du + 1
+        lo = np.searchsorted(bkey, q, side="left")
+        hi = np.searchsorted(bkey, q, side="right")
+        near = np.zeros(n, bool)
+        for k in range(int((hi - lo).max(initial=0))):
+            j = np.minimum(lo + k, bkey.size - 1)
+            near |= (lo + k < hi) & (np.abs(bv[j] - v) <= max_step_px)
+        hit = np.zeros(n, bool)
+        np.logical_or.at(hit, trace, at_end & near)
+        out.append(hit[trace])
+    return out[0], out[1]
+
+
 def smooth_along(
     trace: np.ndarray, u: np.ndarray, v: np.ndarray, window: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Savitzky–Golay (quadratic) smoothing of ``v`` along each trace over ``window`` columns.
+    """Local quadratic (Savitzky–Golay) smoothing of ``v`` along each trace over ``window`` columns.
 
-    Returns the smoothed rows and a mask of the centres whose whole window lies in their
-    trace (the others keep their row and are marked False).
+    Each centre's row is the value at its column of the least-squares quadratic through the
+    centres of its trace within ``window // 2`` columns on either side; near a trace's end the
+    window is the part that exists (one-sided at the very end: no noisier than the raw row).
+    Returns the smoothed rows and a mask of the centres that had at least three columns to fit
+    (the others keep their row and are marked False).
     """
     v = np.asarray(v, dtype=np.float64)
     if window <= 1:
@@ -124,18 +165,30 @@ def smooth_along(
     if window % 2 == 0:
         raise ValueError(f"the smoothing window must be an odd number of columns, got {window}")
     h = window // 2
-    coeffs = savgol_coeffs(window, 2, use="dot")
     col = np.rint(np.asarray(u, dtype=np.float64)).astype(np.int64)
     span = int(col.max() - col.min() + 2 * h + 3) if col.size else 1
     key = trace.astype(np.int64) * span + (col - col.min() + h + 1)
     order = np.argsort(key, kind="stable")
     ks = key[order]
-    out = np.zeros(len(v))
-    full = np.ones(len(v), dtype=bool)
-    for k, c in zip(range(-h, h + 1), coeffs, strict=True):
-        i = np.searchsorted(ks, key + k)
-        i = np.minimum(i, len(ks) - 1)
-        hit = ks[i] == key + k
-        full &= hit
-        out += c * np.where(hit, v[order[i]], 0.0)
-    return np.where(full, out, v), full
+    # moments of the offsets k present in the window, and of the rows there
+    m = np.zeros((5, len(v)))
+    t = np.zeros((3, len(v)))
+    for k in range(-h, h + 1):
+        i = np.minimum(np.searchsorted(ks, key + k), max(len(ks) - 1, 0))
+        hit = (ks[i] == key + k) if len(ks) else np.zeros(len(v), bool)
+        w = hit.astype(np.float64)
+        vk = np.where(hit, v[order[i]], 0.0)
+        for p_ in range(5):
+            m[p_] += w * float(k) ** p_
+        for p_ in range(3):
+            t[p_] += w * vk * float(k) ** p_
+    # value at k = 0 of the quadratic fit: first row of the inverse normal matrix (Cramer)
+    s0, s1, s2, s3, s4 = m
+    c00 = s2 * s4 - s3 * s3
+    c01 = s2 * s3 - s1 * s4
+    c02 = s1 * s3 - s2 * s2
+    det = s0 * c00 + s1 * c01 + s2 * c02
+    ok = (s0 >= 3) & (np.abs(det) > 1e-9)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = (c00 * t[0] + c01 * t[1] + c02 * t[2]) / det
+    return np.where(ok, out, v), ok

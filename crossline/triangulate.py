@@ -25,11 +25,11 @@ import pyarrow.parquet as pq
 
 from crossline.atomic import atomic_path, write_json
 from crossline.camera import Camera
-from crossline.centreline import link_traces, smooth_along, trace_position
+from crossline.centreline import blocked_ends, link_traces, smooth_along, trace_position
 from crossline.disambiguate import Disambiguator, check_pattern, reference_gap
 from crossline.errors import StageError
 from crossline.laser import LaserPlanes
-from crossline.stripes import read_stripes_meta
+from crossline.stripes import MERGED, read_stripes_meta
 
 log = logging.getLogger(__name__)
 
@@ -203,6 +203,13 @@ def run_triangulate(
             idx = np.flatnonzero(keep)
             prev = link_traces(frame[idx], label[idx], u[idx], v[idx])
             trace, from_start, to_end = trace_position(prev, u[idx], v[idx])
+            # a trace that stops at the crossing of A and B (a merged run next to its end) has
+            # not reached the end of its stripe: that end is not trimmed
+            blob = np.flatnonzero((flags & MERGED) != 0)
+            start_open, end_open = blocked_ends(trace, frame[idx], u[idx], v[idx], frame[blob],
+                                                u[blob], v[blob])
+            from_start = np.where(start_open, np.inf, from_start)
+            to_end = np.where(end_open, np.inf, to_end)
             inner = np.minimum(from_start, to_end) >= end_trim_px
             v_used, whole = smooth_along(trace, u[idx], v[idx], smooth_px)
             trimmed["stripe_end"] += int((~inner).sum())
