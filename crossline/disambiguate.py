@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from crossline.errors import StageError
+from crossline.jit import jit
 from crossline.stripes import MERGED
 
 __all__ = ["DROP_REASONS", "Disambiguator", "bridge_gaps", "disambiguate", "nearest_in_column",
@@ -95,54 +96,62 @@ def bridge_gaps(
     A faint or speckled stripe falls below the threshold in a column here and there; without
     a reference in that column an AB centre there could not be labelled. A centre with no
     successor in the next column is joined to the first centre up to ``max_gap`` columns on
-    whose step per column continues its own (within ``kink_px`` rows) or, with no step known,
-    is at most ``step_px``; a jump (an edge, a step, another surface) is not bridged.
-    Returns (u, v) sorted by (u, v).
+    whose step per column continues its own (within ``kink_px`` rows per column) or, with no
+    step known, is at most ``step_px`` per column; a jump (an edge, a step, another surface)
+    is not bridged. Returns (u, v) sorted by (u, v).
     """
-    n = u.size
-    if n < 2 or max_gap < 2:
+    u = np.asarray(u, dtype=np.float64)
+    v = np.asarray(v, dtype=np.float64)
+    if u.size < 2 or max_gap < 2:
         return u, v
-    big = 1.0e6
-    key = u * big + v
-
-    def nearest(du: int, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        q = (u + du) * big + target
-        j = np.searchsorted(key, q)
-        best = np.full(n, np.inf)
-        idx = np.full(n, -1)
-        for jj in (j - 1, j):
-            jc = np.clip(jj, 0, n - 1)
-            ok = (jj >= 0) & (jj < n) & (u[jc] == u + du)
-            d = np.where(ok, np.abs(v[jc] - target), np.inf)
-            better = d < best
-            best, idx = np.where(better, d, best), np.where(better, jc, idx)
-        return idx, best
-
-    _, d_next = nearest(1, v)
-    j_prev, d_prev = nearest(-1, v)
-    step = np.where(d_prev <= step_px + kink_px, v - v[np.maximum(j_prev, 0)], np.nan)
-    open_end = ~(d_next <= step_px + kink_px)
-    fill_u, fill_v = [], []
-    done = ~open_end
-    for g in range(2, max_gap + 1):
-        if done.all():
-            break
-        # where the stripe would be g columns on: continued with its step, or level
-        target = v + g * np.nan_to_num(step)
-        j, d = nearest(g, target)
-        tol = np.where(np.isfinite(step), kink_px * g, step_px * g)
-        hit = np.flatnonzero(~done & (d <= tol))
-        k = np.tile(np.arange(1, g), hit.size)
-        i = np.repeat(hit, g - 1)
-        fill_u.append(u[i] + k)
-        fill_v.append(v[i] + (v[j[i]] - v[i]) * k / g)
-        done[hit] = True
-    if not fill_u:
+    fu, fv = _bridge_nb(u, v, int(max_gap), float(step_px), float(kink_px))
+    if fu.size == 0:
         return u, v
-    uu = np.concatenate([u, *fill_u])
-    vv = np.concatenate([v, *fill_v])
+    uu = np.concatenate([u, fu])
+    vv = np.concatenate([v, fv])
     o = np.lexsort((vv, uu))
     return uu[o], vv[o]
+
+
+@jit
+def _nearest_in(u, v, col, target):  # pragma: no cover - compiled
+    """Index of the centre of column ``col`` nearest to row ``target`` (u sorted), and its distance."""
+    lo = np.searchsorted(u, col, side="left")
+    hi = np.searchsorted(u, col, side="right")
+    best = np.inf
+    idx = -1
+    for j in range(lo, hi):
+        d = abs(v[j] - target)
+        if d < best:
+            best = d
+            idx = j
+    return idx, best
+
+
+@jit
+def _bridge_nb(u, v, max_gap, step_px, kink_px):  # pragma: no cover - compiled
+    """The filled columns of :func:`bridge_gaps` (u, v of the new centres only)."""
+    n = u.size
+    fu = np.empty(n * (max_gap - 1))
+    fv = np.empty(n * (max_gap - 1))
+    k = 0
+    near = step_px + kink_px
+    for i in range(n):
+        _, d_next = _nearest_in(u, v, u[i] + 1.0, v[i])
+        if d_next <= near:
+            continue
+        jp, d_prev = _nearest_in(u, v, u[i] - 1.0, v[i])
+        known = d_prev <= near
+        step = v[i] - v[jp] if known else 0.0
+        for g in range(2, max_gap + 1):
+            j, d = _nearest_in(u, v, u[i] + g, v[i] + g * step)
+            if d <= (kink_px if known else step_px) * g:
+                for m in range(1, g):
+                    fu[k] = u[i] + m
+                    fv[k] = v[i] + (v[j] - v[i]) * m / g
+                    k += 1
+                break
+    return fu[:k], fv[:k]
 
 
 @dataclass

@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 
 from crossline.imageio import ImageError
+from crossline.jit import HAVE_NUMBA, jit
 
 __all__ = ["DECODERS", "decode_png", "fast_decoder_available", "map_frames", "read_frame"]
 
@@ -41,10 +42,6 @@ try:  # optional accelerators: libdeflate inflate and a JIT row-unfilter kernel
 except ImportError:  # pragma: no cover - depends on the environment
     _inflate_lib = None
 
-try:
-    import numba as _numba
-except ImportError:  # pragma: no cover - depends on the environment
-    _numba = None
 
 
 def _unfilter_py(raw: np.ndarray, h: int, stride: int, bpp: int, out: np.ndarray) -> bool:
@@ -100,9 +97,7 @@ def _unfilter_py(raw: np.ndarray, h: int, stride: int, bpp: int, out: np.ndarray
     return True
 
 
-_unfilter = (
-    _numba.njit(cache=True, nogil=True, boundscheck=False)(_unfilter_py) if _numba is not None else None
-)
+_unfilter = jit(_unfilter_py) if HAVE_NUMBA else None
 
 
 def fast_decoder_available() -> bool:

@@ -65,11 +65,8 @@ import pyarrow.parquet as pq
 from crossline.atomic import atomic_path
 from crossline.errors import CrosslineError, StageError
 from crossline.framestream import map_frames
-
-try:
-    import numba as _numba
-except ImportError:  # pragma: no cover - depends on the environment
-    _numba = None
+from crossline.jit import HAVE_NUMBA
+from crossline.jit import jit as _jit
 
 log = logging.getLogger(__name__)
 
@@ -237,13 +234,6 @@ def _run_peaks(flat: np.ndarray, H: int, col: np.ndarray, r0: np.ndarray, r1: np
 # ----------------------------------------------------------------------------- grey centre
 
 
-def _jit(fn):
-    """Compile ``fn`` with numba (nogil, cached) when numba is installed; else leave it Python."""
-    if _numba is None:  # pragma: no cover - numba is a dependency; this keeps imports working
-        return fn
-    return _numba.njit(cache=True, nogil=True, boundscheck=False)(fn)
-
-
 @_jit
 def _runs_nb(idx: np.ndarray, H: int, min_width: float):  # pragma: no cover - compiled
     """numba twin of :func:`_runs` from the flat indices above the threshold."""
@@ -403,9 +393,9 @@ BACKENDS = ("auto", "numba", "numpy")
 def _use_numba(backend: str) -> bool:
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-    if backend == "numba" and _numba is None:
+    if backend == "numba" and not HAVE_NUMBA:
         raise RuntimeError("backend 'numba' needs the numba package")
-    return _numba is not None and backend != "numpy"
+    return HAVE_NUMBA and backend != "numpy"
 
 
 def grey_centre(
@@ -700,7 +690,7 @@ def gaussian(
     imT = np.ascontiguousarray(cv2.transpose(img))
     W, H = imT.shape
     flat = imT.reshape(-1)
-    if _numba is None:  # pragma: no cover - numba is a dependency
+    if not HAVE_NUMBA:  # pragma: no cover - numba is a dependency
         raise RuntimeError("the gaussian extractor needs the numba package")
     col, r0, r1 = _runs_nb(np.flatnonzero(imT > _int_threshold(thr, imT.dtype)), H, float(min_width))
     k = col.size
@@ -877,7 +867,7 @@ def steger(
     thr = threshold * full
     H, W = img.shape
     imT = np.ascontiguousarray(cv2.transpose(img))
-    if _numba is not None:
+    if HAVE_NUMBA:
         col, r0, r1 = _runs_nb(np.flatnonzero(imT > _int_threshold(thr, imT.dtype)), H, float(min_width))
     else:  # pragma: no cover - numba is a dependency
         col, r0, r1 = _runs(imT, thr, min_width)
@@ -885,7 +875,7 @@ def steger(
     if k == 0:
         return empty_centres()
     g = _smooth_band(img, col, r0, r1, sigma)
-    if _numba is not None:
+    if HAVE_NUMBA:
         seg, r, dv, g0, lam, nx, ny = _steger_nb(g, col, r0, r1)
     else:  # pragma: no cover - numba is a dependency
         seg, r, dv, g0, lam, nx, ny = _steger_nb.__wrapped__(g, col, r0, r1) \
