@@ -101,6 +101,7 @@ MERGE_FACTOR = 1.5  # a run wider than this many times the frame's median width 
 BG_PIXELS = 2  # pixels beyond each end of a window that estimate the local background
 BG_FIT_PIXELS = 3  # gaussian: pixels beyond each end of a window that the background line is fitted to
 RELATIVE_NOISE_START = 0.15  # gaussian: relative (speckle) noise of the first fit, before it is estimated
+RELATIVE_NOISE_SAMPLE = 4  # gaussian: every 4th clean stripe profile of a frame estimates it
 NEIGHBOUR_DV = 2.5  # largest row step between the same stripe in adjacent columns, px
 STEEP_LENGTH_RATIO = 0.67  # runs of a steep stripe in adjacent columns differ in length by less
 RIDGE_FRACTION = 0.5  # Steger: a run's ridge claims weaker than this share of its strongest are dropped
@@ -529,12 +530,12 @@ def _gauss_windows_nb(flat, H, col, r0, r1, ext, nbg):  # pragma: no cover - com
 
 @_jit
 def _gauss_solve_nb(flat, H, col, r0, lo_w, hi_w, bc, bs, noise2, rel2, full, iters, warm,
-                    a_io, c_io, s_io, ok_io, flags):  # pragma: no cover - compiled
+                    residuals, a_io, c_io, s_io, ok_io, flags):  # pragma: no cover - compiled
     """Gauss-Newton fit of each window's Gaussian (a, c, s), in place in a_io, c_io, s_io.
 
-    Without ``warm`` the start is the window's intensity centroid and second moment.
-    Returns per window the weighted sum of squared relative residuals of its bright pixels
-    (model above half its peak) and their count, for the estimate of the relative noise.
+    Without ``warm`` the start is the window's intensity centroid and second moment. With
+    ``residuals``, returns per window the sum of squared relative residuals of its bright
+    pixels (model above half its peak) and their count, for the estimate of the relative noise.
     """
     k = col.size
     rel_ss = np.zeros(k)
@@ -642,10 +643,13 @@ def _gauss_solve_nb(flat, H, col, r0, lo_w, hi_w, bc, bs, noise2, rel2, full, it
         a_io[i] = a
         c_io[i] = c
         s_io[i] = s
-        # relative residuals where the stripe is bright (the sensor's share removed)
+        if not residuals:
+            continue
+        # relative residuals where the stripe is bright, above half its peak (|z| < 1.18);
+        # the sensor's share removed
         ss = 0.0
         nb = 0
-        for r in range(lo, hi + 1):
+        for r in range(max(lo, int(np.ceil(c - 1.1775 * s))), min(hi, int(np.floor(c + 1.1775 * s))) + 1):
             val = float(flat[base + r])
             z = (r - c) / s
             yh = a * np.exp(-0.5 * z * z)
@@ -679,11 +683,11 @@ def gaussian(
     likelihood, ``1 / (r^2 yhat^2 + sigma_n^2)``: laser speckle is multiplicative (relative
     noise ``r``), sensor noise additive (``sigma_n``, from the background lines of the frame);
     clipped pixels are left out. ``relative_noise=None`` estimates ``r`` from the frame itself:
-    a first fit with ``r = 0.15``, then the relative residuals of the bright pixels give ``r``
-    and the fit is repeated from the first solution. Returns a centre table (module doc) in
-    frame-local pixels, sorted by (u, v) (``strength``: the fitted profile's integral,
-    ``width_n``: its FWHM across the stripe), and with ``return_info`` also
-    ``{"noise_dn": sigma_n, "relative_noise": r}``.
+    every ``RELATIVE_NOISE_SAMPLE``-th clean profile is fitted with ``r = 0.15`` first, the
+    relative residuals of their bright pixels give ``r``, then every profile is fitted with it.
+    Returns a centre table (module doc) in frame-local pixels, sorted by (u, v)
+    (``strength``: the fitted profile's integral, ``width_n``: its FWHM across the stripe),
+    and with ``return_info`` also ``{"noise_dn": sigma_n, "relative_noise": r}``.
     """
     full = full_scale(img.dtype)
     thr = threshold * full
@@ -708,15 +712,22 @@ def gaussian(
     s = np.zeros(k)
     ok = np.ones(k, bool)
     rel = RELATIVE_NOISE_START if relative_noise is None else float(relative_noise)
-    rel_ss, rel_n = _gauss_solve_nb(flat, H, col, r0, lo, hi, bc, bs, noise2, rel * rel, full,
-                                    int(iterations), False, a, c, s, ok, flags)
     if relative_noise is None:
-        # from the clean single stripes: merged and close ones are not Gaussians
-        clean = ok & ((flags & (CLOSE | EDGE | SATURATED)) == 0) & (rel_n > 0)
-        if clean.any():
-            rel = float(np.sqrt(max(rel_ss[clean].sum() / rel_n[clean].sum(), 0.0)))
-            _gauss_solve_nb(flat, H, col, r0, lo, hi, bc, bs, noise2, rel * rel, full,
-                            int(iterations), True, a, c, s, ok, flags)
+        # the relative noise from a sample of the clean single stripes (close ones and those
+        # at the border are not clean Gaussians), fitted first with a start value
+        sub = np.flatnonzero((flags & (CLOSE | EDGE)) == 0)[::RELATIVE_NOISE_SAMPLE]
+        if sub.size:
+            fl = flags[sub].copy()
+            a1, c1, s1 = np.zeros(sub.size), np.zeros(sub.size), np.zeros(sub.size)
+            ok1 = np.ones(sub.size, bool)
+            rel_ss, rel_n = _gauss_solve_nb(flat, H, col[sub], r0[sub], lo[sub], hi[sub], bc[sub],
+                                            bs[sub], noise2, rel * rel, full, int(iterations), False,
+                                            True, a1, c1, s1, ok1, fl)
+            clean = ok1 & ((fl & SATURATED) == 0) & (rel_n > 0)
+            if clean.any():
+                rel = float(np.sqrt(max(rel_ss[clean].sum() / rel_n[clean].sum(), 0.0)))
+    _gauss_solve_nb(flat, H, col, r0, lo, hi, bc, bs, noise2, rel * rel, full, int(iterations),
+                    False, False, a, c, s, ok, flags)
     u = col.astype(np.float64)
     width = (r1 - r0 + 1).astype(np.float64)
     v = np.where(ok, c, np.nan)
