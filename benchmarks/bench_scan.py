@@ -44,21 +44,25 @@ from crossline.camera import Camera  # noqa: E402
 from crossline.capture import open_capture  # noqa: E402
 from crossline.framestream import decode_png, fast_decoder_available  # noqa: E402
 from crossline.laser import LaserPlanes  # noqa: E402
-from crossline.stripes import grey_centre, run_extract_stripes, steger  # noqa: E402
+from crossline.stripes import EXTRACTORS, gaussian, grey_centre, run_extract_stripes, steger  # noqa: E402
 from crossline.triangulate import run_triangulate, to_base  # noqa: E402
 
 CACHE = REPO / "benchmarks" / ".cache"
 RESULTS = REPO / "benchmarks" / "results"
 CROSSING_PX = 15.0
 SCAN = "plate"
+SMOOTH_WINDOWS = (5, 9)
+BUDGET_FRAMES = 6  # per laser, for the error budget
+PATTERNS = (("A", "B", "AB"), ("A", "B", "AB", "AB"), ("A", "B", "AB", "AB", "AB", "AB"))
 
 
 # ----------------------------------------------------------------------------- data
 
 
-def render(preset: str, frames: int) -> Path | None:
+def render(preset: str, frames: int, pattern: list[str] | None = None) -> Path | None:
     """A capture of ``preset`` with its plate scan of ``frames`` frames (cached), or None."""
-    out = CACHE / f"{preset}-{SCAN}-{frames}"
+    tag = "" if pattern is None else "-" + "-".join(pattern)
+    out = CACHE / f"{preset}-{SCAN}-{frames}{tag}"
     if (out / "rig.yaml").is_file() and (out / "truth.json").is_file():
         return out
     try:
@@ -66,7 +70,7 @@ def render(preset: str, frames: int) -> Path | None:
 
         shutil.rmtree(out, ignore_errors=True)
         simulate(out, preset=preset, frames=frames, scans=[SCAN], force=True, threads=2,
-                 progress=False)
+                 progress=False, pattern=pattern)
         return out
     except Exception as exc:  # the simulator is optional here: say why and go on
         print(f"  [{preset}] simulator unavailable: {type(exc).__name__}: {exc}")
@@ -167,6 +171,7 @@ def score_centres(stripes: pd.DataFrame, tl: pd.DataFrame) -> dict:
     frac = (s["u"] - s["u0"]).to_numpy()
     piv = tl.groupby(["frame", "u", "laser"])["v"].first().unstack("laser")
     piv = piv.reindex(columns=["A", "B"])
+    slopes = true_slopes(tl)
     m0 = s.join(piv, on=["frame", "u0"])
     m1 = s.join(piv, on=["frame", "u1"])
     m = m0
@@ -181,17 +186,37 @@ def score_centres(stripes: pd.DataFrame, tl: pd.DataFrame) -> dict:
     db = np.where(lit_b, np.abs(v - vb), np.inf)
     e = np.minimum(da, db)
     e = np.where(np.isfinite(e), e, np.nan)
+    # the distance to the true centre line itself (normal to it) is the error a centre makes;
+    # the row error at a fixed column is that divided by cos(slope), 1.4-1.7x on these stripes
+    sl = s[["frame", "u0"]].join(slopes, on=["frame", "u0"])
+    slope = np.where(da <= db, sl["A"].to_numpy(), sl["B"].to_numpy())
+    e_normal = e / np.sqrt(1.0 + np.nan_to_num(slope) ** 2)
     near = np.abs(va - vb) < CROSSING_PX  # both true stripes close in this column
     flagged = (m["flags"].to_numpy() & 1) != 0  # merged
     has = np.isfinite(e) & (e < 5.0)  # centres on a true stripe (not reflections or noise)
     out = {"centres": len(s), "scored": int(has.sum()), "off_truth": int((~has).sum())}
     for name, sel in (("away", has & ~near & ~flagged), ("crossing", has & near & ~flagged)):
-        x = e[sel]
+        x, xn = e[sel], e_normal[sel]
         out[name] = {"n": int(x.size),
                      "rms_px": float(np.sqrt(np.mean(x**2))) if x.size else None,
                      "p99_px": float(np.percentile(x, 99)) if x.size else None,
-                     "mean_abs_px": float(np.mean(x)) if x.size else None}
+                     "mean_abs_px": float(np.mean(x)) if x.size else None,
+                     "normal_rms_px": float(np.sqrt(np.mean(xn**2))) if x.size else None,
+                     "normal_p99_px": float(np.percentile(xn, 99)) if x.size else None}
     return out
+
+
+def true_slopes(tl: pd.DataFrame) -> pd.DataFrame:
+    """dv/du of the true centre line at each (frame, column), one column per laser."""
+    t = tl.sort_values(["frame", "laser", "u"])
+    du = t.groupby(["frame", "laser"])["u"].diff()
+    dv = t.groupby(["frame", "laser"])["v"].diff()
+    fwd = (dv / du).where(du == 1)
+    back = fwd.groupby([t["frame"], t["laser"]]).shift(-1)
+    slope = pd.concat([fwd, back], axis=1).mean(axis=1)
+    out = pd.DataFrame({"frame": t["frame"], "u": t["u"], "laser": t["laser"], "slope": slope})
+    return out.groupby(["frame", "u", "laser"])["slope"].first().unstack("laser").reindex(
+        columns=["A", "B"])
 
 
 def score_labels(points: pd.DataFrame, tl: pd.DataFrame, meta: dict) -> dict:
@@ -210,6 +235,9 @@ def score_labels(points: pd.DataFrame, tl: pd.DataFrame, meta: dict) -> dict:
     ab_in = c["centres_by_state"]["AB"]
     single = (c["centres_by_state"]["A"] + c["centres_by_state"]["B"]) / max(
         c["frames"]["A"] + c["frames"]["B"], 1)
+    # a single-line rig runs the same pipeline (its trace ends are trimmed too): its points per
+    # frame are those of our A and B frames
+    single_points = int(points["lasers"].isin(["A", "B"]).sum()) / max(c["frames"]["A"] + c["frames"]["B"], 1)
     return {
         "ab_points": len(p), "ab_points_known": int(known.sum()),
         "wrong_labels": int(wrong.sum()), "wrong_labels_away": int((wrong & ~near).sum()),
@@ -219,8 +247,11 @@ def score_labels(points: pd.DataFrame, tl: pd.DataFrame, meta: dict) -> dict:
         "dropped_rate_of_ab_centres": float(sum(c["dropped"].values()) / max(ab_in, 1)),
         "AB_frames_without_reference": c["AB_frames_without_reference"],
         "points_per_frame": meta["points_per_frame"],
-        "single_line_points_per_frame": single,
-        "ratio_vs_single_line": meta["points_per_frame"] / max(single, 1e-9),
+        "single_line_centres_per_frame": single,
+        "ratio_vs_single_line_centres": meta["points_per_frame"] / max(single, 1e-9),
+        "single_line_points_per_frame": single_points,
+        "ratio_vs_single_line": meta["points_per_frame"] / max(single_points, 1e-9),
+        "ab_points_per_ab_frame": len(p) / max(c["frames"]["AB"], 1),
     }
 
 
@@ -243,6 +274,77 @@ def score_surface(capture: Path, points: pd.DataFrame, T_tool_cam: np.ndarray) -
         tru = pb @ n + d
         out["true_poses"] = {"rms_mm": float(np.sqrt(np.mean(tru**2))),
                              "p99_mm": float(np.percentile(np.abs(tru), 99))}
+    return out
+
+
+def error_budget(preset: str) -> dict:
+    """Centre error of each extractor on plate frames rendered with and without speckle and noise.
+
+    The same frames (A-only and B-only, spread over the sweep) are rendered four times with the
+    simulator's own renderer, so the share of each error source is seen directly.
+    """
+    from crossline.geometry import invert_transform
+    from crossline.sim import arm as arm_mod
+    from crossline.sim.capture import KIND_SCAN, Plan, _light_base, _model, _rng
+    from crossline.sim.presets import PRESETS
+    from crossline.sim.render import render_image
+    from crossline.sim.scenes import scan_scene
+
+    rig = PRESETS[preset]
+    model = _model(Plan(rig, 0, rig.sensor.bit_depth, None))
+    spec = next(x for x in rig.scans if x.name == SCAN)
+    scene0, _, aim = scan_scene(rig, spec)
+    _, T_base_cam = arm_mod.scan_trajectory(rig, spec, aim, spec.frames)
+    T_cam_base = invert_transform(T_base_cam)
+    x0, y0 = model.scan_window[:2]
+    ks = np.linspace(0.1, 0.9, BUDGET_FRAMES) * (spec.frames - 1)
+    cases = {"sensor noise and speckle": (True, True), "speckle only": (False, True),
+             "sensor noise only": (True, False), "neither (optics, sampling)": (False, False)}
+    out = {}
+    for name, (noise, speckle) in cases.items():
+        rows = {ex: [] for ex in EXTRACTORS}
+        truth = []
+        for j, k in enumerate(ks.astype(int)):
+            for laser in ("A", "B"):
+                fid = 2 * j + (laser == "B")
+                scene = scene0.transformed(T_cam_base[k])
+                light = _light_base(T_cam_base[k], rig.ambient_scan_e, aim)
+                dn, tr, _ = render_image(model, scene, light, model.scan_window, (laser,),
+                                         _rng(0, KIND_SCAN, 0, k), noise=noise, speckle=speckle)
+                t = pd.DataFrame({"frame": fid, "laser": laser, "u": tr[laser]["u"], "v": tr[laser]["v"],
+                                  "visible": tr[laser]["visible"]})
+                truth.append(t[t["visible"]])
+                for ex in EXTRACTORS:
+                    c = {"grey_centre": grey_centre, "gaussian": gaussian, "steger": steger}[ex](dn)
+                    rows[ex].append(pd.DataFrame({"frame": fid, "lasers": laser, "u": c["u"] + x0,
+                                                  "v": c["v"] + y0, "flags": c["flags"]}))
+        tl = pd.concat(truth, ignore_index=True)[["frame", "laser", "u", "v"]]
+        # the trace ends (cut cross-sections) are left out, as the pipeline trims them
+        lo = tl.groupby(["frame", "laser"])["u"].transform("min") + 8
+        hi = tl.groupby(["frame", "laser"])["u"].transform("max") - 8
+        tl_in = tl[(tl["u"] >= lo) & (tl["u"] <= hi)]
+        out[name] = {}
+        for ex in EXTRACTORS:
+            st = pd.concat(rows[ex], ignore_index=True)
+            st = st[st.set_index(["frame", "u"]).index.isin(tl_in.set_index(["frame", "u"]).index)]
+            out[name][ex] = score_centres(st, tl_in)["away"]
+    return out
+
+
+def pattern_study(preset: str, frames: int, cal_dir: Path, work: Path) -> dict:
+    """Points per frame and labelling with patterns that have more AB frames per period."""
+    out = {}
+    for pat in PATTERNS:
+        cap = render(preset, frames, None if pat == PATTERNS[0] else list(pat))
+        if cap is None:
+            continue
+        cal = true_calibration(cap, cal_dir)
+        _, tl = truth_table(cap)
+        name = ",".join(pat)
+        st, pt = work / f"pattern-{len(pat)}.parquet", work / f"pattern-{len(pat)}-points.parquet"
+        run_extract_stripes(cap, SCAN, st, extractor="gaussian", threads=2)
+        meta = run_triangulate(cap, SCAN, st, *cal, pt)
+        out[name] = score_labels(pd.read_parquet(pt), tl, meta)
     return out
 
 
@@ -310,15 +412,16 @@ def speeds(capture: Path, cal: tuple[Path, Path, Path], repeat: int, work: Path)
         res["decode_fast_ms"] = per_frame_ms(lambda b: decode_png(b, "x", "fast"), blobs)
     res["grey_centre_numba_ms"] = per_frame_ms(lambda im: grey_centre(im, backend="numba"), imgs)
     res["grey_centre_numpy_ms"] = per_frame_ms(lambda im: grey_centre(im, backend="numpy"), imgs)
+    res["gaussian_ms"] = per_frame_ms(gaussian, imgs)
     res["steger_ms"] = per_frame_ms(lambda im: steger(im, sigma=2.0), imgs)
     res["naive_python_ms"] = 1e3 * median_time(lambda: naive_grey_centre(imgs[0]), 1)
     res["naive_over_numba"] = res["naive_python_ms"] / res["grey_centre_numba_ms"]
     res["naive_over_numpy"] = res["naive_python_ms"] / res["grey_centre_numpy_ms"]
-    for k in ("grey_centre_numba", "grey_centre_numpy", "steger"):
+    for k in ("grey_centre_numba", "grey_centre_numpy", "gaussian", "steger"):
         res[k + "_fps_per_core"] = 1e3 / res[k + "_ms"]
     # end to end with 2 threads: extraction (streamed, 2 threads) then triangulation
     nfr = len(sc.frames)
-    for ex in ("grey_centre", "steger"):
+    for ex in EXTRACTORS:
         ext, tri = [], []
         for _ in range(max(2, repeat // 2)):
             st, pt = work / f"e2e-{ex}.parquet", work / f"e2e-{ex}-points.parquet"
@@ -398,6 +501,10 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--mem-frames", default="500,2000")
     ap.add_argument("--skip-memory", action="store_true")
+    ap.add_argument("--no-budget", dest="budget", action="store_false",
+                    help="skip the error budget (frames rendered with speckle and noise switched off)")
+    ap.add_argument("--no-patterns", dest="patterns", action="store_false",
+                    help="skip the laser-pattern study (renders the plate scan with more AB frames)")
     a = ap.parse_args(argv)
     RESULTS.mkdir(parents=True, exist_ok=True)
     work = CACHE / "work"
@@ -421,18 +528,23 @@ def main(argv=None) -> int:
         truth, tl = truth_table(cap)
         T_tool_cam = np.array(truth["T_tool_cam"])
         entry: dict = {"rendered": True, "frames": a.frames, "extractors": {}}
-        for ex in ("grey_centre", "steger"):
+        for ex in EXTRACTORS:
             st, pt = work / f"{preset}-{ex}.parquet", work / f"{preset}-{ex}-points.parquet"
-            run_extract_stripes(cap, SCAN, st, extractor=ex, threads=2)
+            smeta = run_extract_stripes(cap, SCAN, st, extractor=ex, threads=2)
             meta = run_triangulate(cap, SCAN, st, *cal, pt)
             s, p = pd.read_parquet(st), pd.read_parquet(pt)
             r = {"centres": score_centres(s, tl), "centres_used": score_centres(p, tl),
                  "labels": score_labels(p, tl, meta),
                  "surface": score_surface(cap, p, T_tool_cam)}
-            # the same with the centre line smoothed along the stripe over 9 columns
-            ps = work / f"{preset}-{ex}-smooth9.parquet"
-            run_triangulate(cap, SCAN, st, *cal, ps, smooth_px=9)
-            r["centres_smooth9"] = score_centres(pd.read_parquet(ps), tl)
+            if "noise" in smeta:
+                r["noise_found"] = {k: float(np.median(v)) for k, v in smeta["noise"].items() if k != "frame"}
+            # the same with the centre line smoothed along the stripe (local quadratic)
+            for win in SMOOTH_WINDOWS:
+                ps = work / f"{preset}-{ex}-smooth{win}.parquet"
+                run_triangulate(cap, SCAN, st, *cal, ps, smooth_px=win)
+                pts = pd.read_parquet(ps)
+                r[f"centres_smooth{win}"] = score_centres(pts, tl)
+                r[f"surface_smooth{win}"] = score_surface(cap, pts, T_tool_cam)
             # the paper's rule (latest frame, nearest wins) on the same centres, for comparison
             meta0 = run_triangulate(cap, SCAN, st, *cal, work / f"{preset}-{ex}-paper.parquet",
                                     ambiguity_px=0.0, predict=False)
@@ -440,27 +552,54 @@ def main(argv=None) -> int:
                 pd.read_parquet(work / f"{preset}-{ex}-paper.parquet"), tl, meta0)
             entry["extractors"][ex] = r
             c, lb, sf = r["centres"], r["labels"], r["surface"]
-            say(f"  {ex:12s} centre error away: RMS {c['away']['rms_px']:.4f} px, p99 "
+            say(f"  {ex:12s} centre error away (row at the column / normal to the line): RMS "
+                f"{c['away']['rms_px']:.4f} / {c['away']['normal_rms_px']:.4f} px, p99 "
                 f"{c['away']['p99_px']:.4f} px (n={c['away']['n']}); crossing band: RMS "
                 f"{c['crossing']['rms_px'] or float('nan'):.4f} px, p99 "
                 f"{c['crossing']['p99_px'] or float('nan'):.4f} px (n={c['crossing']['n']})")
-            for tag, what in (("centres_used", "after end trimming"),
-                              ("centres_smooth9", "trimmed + smoothed over 9 columns")):
-                c = r[tag]
-                say(f"  {'':12s} {what}: "
-                    f"away RMS {c['away']['rms_px']:.4f} px, p99 {c['away']['p99_px']:.4f} px "
-                    f"(n={c['away']['n']})")
+            if "noise_found" in r:
+                say(f"  {'':12s} noise found in the frames (median): background "
+                    f"{r['noise_found']['background_noise_dn']:.2f} DN, relative (speckle) "
+                    f"{r['noise_found']['relative_noise']:.3f}")
+            tags = [("centres_used", "after end trimming", "surface")] + [
+                (f"centres_smooth{w}", f"trimmed + smoothed over {w} columns", f"surface_smooth{w}")
+                for w in SMOOTH_WINDOWS]
+            for tag, what, stag in tags:
+                c = r[stag.replace("surface", "centres")] if stag != "surface" else r[tag]
+                ssf = r[stag]
+                say(f"  {'':12s} {what}: away RMS {c['away']['rms_px']:.4f} / "
+                    f"{c['away']['normal_rms_px']:.4f} px, p99 {c['away']['p99_px']:.4f} px "
+                    f"(n={c['away']['n']}); plate RMS (TRUE calibration and poses) "
+                    f"{ssf.get('true_poses', ssf['reported_poses'])['rms_mm']:.4f} mm")
             for tag, L in (("ours", lb), ("paper rule", r["labels_paper_rule"])):
                 say(f"  {'':12s} labels ({tag}): wrong {L['wrong_labels']} of {L['ab_points_known']} "
                     f"AB points "
                     f"({100 * L['wrong_rate']:.3f} %), away from crossing {L['wrong_labels_away']}; "
                     f"dropped {L['dropped_total']} ({100 * L['dropped_rate_of_ab_centres']:.2f} % of AB "
                     f"centres) {L['dropped']}; points/frame {L['points_per_frame']:.1f} = "
-                    f"{L['ratio_vs_single_line']:.3f}x single line")
+                    f"{L['ratio_vs_single_line']:.3f}x a single line through the same pipeline "
+                    f"({L['ratio_vs_single_line_centres']:.3f}x its untrimmed centres)")
             sp = sf.get("true_poses", sf["reported_poses"])
             say(f"  {'':12s} distance to true plate (TRUE calibration): RMS "
                 f"{sf['reported_poses']['rms_mm']:.4f} mm with reported poses, "
                 f"{sp['rms_mm']:.4f} mm with true poses")
+        if a.budget:
+            entry["error_budget"] = error_budget(preset)
+            say(f"  error budget (A and B frames of the plate rendered again, {BUDGET_FRAMES} each; "
+                f"centre error RMS, row at the column / normal to the line, px):")
+            for name, row in entry["error_budget"].items():
+                say(f"    {name:28s} " + "  ".join(
+                    f"{ex} {v['rms_px']:.4f} / {v['normal_rms_px']:.4f}" for ex, v in row.items()))
+        if a.patterns and preset == "paper":
+            entry["patterns"] = pattern_study(preset, a.frames, work / f"cal-{preset}", work)
+            say("  laser patterns (gaussian extractor; points per frame vs a single line through the "
+                "same pipeline):")
+            for name, L in entry["patterns"].items():
+                say(f"    {name:20s} {L['points_per_frame']:7.1f} points/frame = "
+                    f"{L['ratio_vs_single_line']:.3f}x (all lines kept: "
+                    f"{(len(name.split(',')) + name.count('AB')) / len(name.split(',')):.3f}x); wrong labels "
+                    f"{L['wrong_labels']} of {L['ab_points_known']}, dropped "
+                    f"{100 * L['dropped_rate_of_ab_centres']:.2f} % of AB centres")
         report["presets"][preset] = entry
         if speed_capture is None:
             speed_capture, speed_cal = cap, cal
@@ -480,10 +619,12 @@ def main(argv=None) -> int:
     say(f"  grey-centre kernel: numba {sp['grey_centre_numba_ms']:.3f} ms "
         f"({sp['grey_centre_numba_fps_per_core']:.0f} frames/s/core), numpy "
         f"{sp['grey_centre_numpy_ms']:.3f} ms ({sp['grey_centre_numpy_fps_per_core']:.0f})")
+    say(f"  Gaussian-fit kernel: {sp['gaussian_ms']:.3f} ms "
+        f"({sp['gaussian_fps_per_core']:.0f} frames/s/core)")
     say(f"  Steger kernel: {sp['steger_ms']:.3f} ms ({sp['steger_fps_per_core']:.0f} frames/s/core)")
     say(f"  naive per-column Python loop: {sp['naive_python_ms']:.0f} ms/frame = "
         f"{sp['naive_over_numba']:.0f}x numba, {sp['naive_over_numpy']:.0f}x numpy")
-    for ex in ("grey_centre", "steger"):
+    for ex in EXTRACTORS:
         e = sp[f"end_to_end_{ex}"]
         say(f"  end to end {ex} (2 threads, {e['frames']} frames): {e['frames_per_s']:.0f} frames/s "
             f"(extract {e['extract_s']:.2f} s = {e['extract_frames_per_s']:.0f} frames/s, triangulate "
