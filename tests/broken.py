@@ -2,13 +2,22 @@
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
 
+from crossline.atomic import write_json
+from crossline.camera import Camera
+from crossline.geometry import invert_transform, make_transform
 from crossline.imageio import read_image, write_png
+from crossline.sim import arm as sim_arm
+from crossline.sim import capture as sim_capture
+from crossline.sim.presets import PRESETS
+from crossline.sim.views import board_outline_points
 
 
 def _rewrite(path: Path, data: bytes | str) -> None:
@@ -33,6 +42,65 @@ def _edit_csv(path: Path, line: int, column: str, value: str) -> None:
     cells[header.index(column)] = value
     rows[line - 1] = ",".join(cells)
     _rewrite(path, "\n".join(rows) + "\n")
+
+
+def _degenerate_handeye(dest: Path, tilt_deg: float = 15.0, roll_deg: float = 15.0) -> None:
+    """Re-render the hand-eye views so that every arm motion turns about one axis.
+
+    The camera stays at one point above the board, tilted by ``tilt_deg`` from the board's
+    normal and aimed at its centre, and only rolls about its optical axis (from -roll_deg to
+    +roll_deg, within the +-40 deg that keeps a symmetric grid's labelling resolvable), as
+    near as the whole board stays in every view: each view is detected, but the rotation axes
+    of all motion pairs coincide (up to the arm's noise), so X is not determined about that
+    axis. Rendered with the simulator's own hand-eye job (same preset, seed, bit depth, arm
+    noise and per-image random streams as the good capture), so images and poses.csv agree;
+    truth.json follows.
+    """
+    truth = json.loads((dest / "truth.json").read_text())
+    rig = PRESETS[truth["preset"]]
+    seed, bits = int(truth["seed"]), int(truth["sensor"]["bit_depth"])
+    he = dest / "calibration/handeye"
+    n = len(list(he.glob("*.png")))
+    s = rig.sensor
+    cam = Camera(np.array(s.K), np.array(s.dist), (s.width, s.height))
+    Tbb = rig.T_base_board
+    centre = Tbb[:3, :3] @ sim_capture._board_centre(rig) + Tbb[:3, 3]
+    t, a = np.radians(tilt_deg), np.radians(30.0)
+    towards_cam = np.array([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t)])
+    R = [sim_arm.view_rotation(-towards_cam, Tbb[:3, 0], r)
+         for r in np.radians(np.linspace(-roll_deg, roll_deg, n))]
+    cal = rig.quick_calibration if truth["quick"] else rig.calibration
+    outline = board_outline_points(rig.board)
+    for dist in cal.handeye_distance_mm + np.arange(0.0, 90.0, 3.0):
+        T_base_cam = make_transform(np.array(R), centre + towards_cam * dist)
+        T_cam_board = invert_transform(T_base_cam) @ Tbb
+        uv = cam.project(np.einsum("vij,nj->vni", T_cam_board[:, :3, :3], outline)
+                         + T_cam_board[:, None, :3, 3])
+        if np.all((uv > 20) & (uv < np.array(cam.image_size) - 21)):
+            break
+    else:  # pragma: no cover - every preset's board fits at some distance
+        raise ValueError(f"{rig.name}: the board does not fit the frame rolled by +-{roll_deg} deg")
+    T_tool_true = sim_arm.tool_from_cam(T_base_cam, rig.T_tool_cam)
+    T_tool_rep, dp, dth = sim_arm.noise_calibration(T_tool_true, rig.arm, sim_capture._rng(seed, 90))
+    for png in he.glob("*.png"):
+        png.unlink()
+    plan = sim_capture.Plan(rig, seed, bits, dest)
+    threads = cv2.getNumThreads()  # the simulator's job sets OpenCV to one thread
+    rows, truth_he = [], {}
+    try:
+        for i in range(n):
+            name = f"pose_{i:02d}.png"
+            job = ("handeye", i, invert_transform(T_base_cam[i]), f"calibration/handeye/{name}")
+            sim_capture._run(plan, job)
+            rows.append(",".join([name, *sim_capture._pose_row(T_tool_rep[i])]) + "\n")
+            truth_he[name] = {"T_base_tool": T_tool_true[i], "T_cam_board": T_cam_board[i],
+                              "error_position_mm": dp[i], "error_rotation_rad": dth[i]}
+    finally:
+        cv2.setNumThreads(threads)
+    _rewrite(he / "poses.csv", "image,x,y,z,qw,qx,qy,qz\n" + "".join(rows))
+    truth["calibration"]["handeye"] = truth_he
+    (dest / "truth.json").unlink()
+    write_json(dest / "truth.json", truth)
 
 
 def break_capture(good: Path, dest: Path, fault: str) -> Path:
@@ -63,6 +131,8 @@ def break_capture(good: Path, dest: Path, fault: str) -> Path:
         _rewrite(frames, "\n".join(r.replace(",A,", ",B,") for r in rows) + "\n")
         for png in (dest / "scans/plate/frames").glob("*.png"):
             _blank_png(png, 0)
+    elif fault == "degenerate_handeye":
+        _degenerate_handeye(dest)
     else:
         raise ValueError(f"unknown fault {fault!r}")
     return dest

@@ -224,7 +224,8 @@ def test_bad_captures_beside_a_good_one(done_workdir: Path, tmp_path: Path) -> N
     wd = tmp_path / "bad"
     shutil.copytree(done_workdir, wd, symlinks=True)
     good = (done_workdir / "data/raw/q").resolve()
-    faults = ["empty", "corrupt_png", "nan_pose", "misspelt_rig_key", "few_views", "scan_faults"]
+    faults = ["empty", "corrupt_png", "nan_pose", "misspelt_rig_key", "few_views", "scan_faults",
+              "degenerate_handeye"]
     for f in faults:
         break_capture(good, tmp_path / "raw" / f, f)
         (wd / "data/raw" / f).symlink_to(tmp_path / "raw" / f, target_is_directory=True)
@@ -253,6 +254,21 @@ def test_bad_captures_beside_a_good_one(done_workdir: Path, tmp_path: Path) -> N
     assert "needs at least 6 usable views, got 2 of 22" in text
     assert all(f"camera/view_{i:02d}.png" in text for i in range(2, 8))
     assert not (interim / "few_views/calibration/camera.json").exists()
+    # hand-eye views that all turn about one axis: the camera and lasers still calibrate,
+    # hand-eye fails with what is wrong and what to do, and nothing after it is made
+    text = log("degenerate_handeye", "calibrate_handeye.log")
+    assert ("degenerate hand-eye motion: all 28 rotating motion pairs turn about nearly the same "
+            "axis") in text
+    assert ("Re-take the hand-eye views (calibration/handeye) rotating the scanner about at least "
+            "two different axes between views") in text
+    # images and poses agree: no pair or view is rejected for mismatching rotation angles
+    assert "rejected: rotation angles" not in text and "matching rotation angles" not in text
+    cal = interim / "degenerate_handeye/calibration"
+    assert (cal / "camera.json").is_file() and (cal / "lasers.json").is_file()
+    assert not (cal / "handeye.json").exists()
+    assert not (interim / "degenerate_handeye/points").exists()
+    assert not (wd / "data/processed/degenerate_handeye").exists()
+    assert not (wd / "reports/degenerate_handeye").exists()
     # scan faults: the broken scans fail, the capture's other scans are processed
     assert "scan gauge: has AB frames but no A frame" in log(
         "scan_faults", "triangulate_points/gauge.log")
