@@ -24,7 +24,12 @@ a motion pair (i, j)::
 4. Refinement: X and ``T_base_board`` jointly, minimising the reprojection error (px) of every
    board point in every view through ``T_cam_board_i = inv(X) inv(T_base_tool_i) T_base_board``
    with the calibrated camera (scipy least squares), the circle-centre bias re-predicted from
-   the current estimate between rounds.
+   the current estimate between rounds. First with the arm poses taken as exact
+   ("reprojection"), then by maximum likelihood ("refined"): each view's arm pose gets a
+   correction weighted by the arm's standard deviations against the image residuals, the
+   image and arm sigmas estimated from the residuals by variance components (Förstner). The
+   covariance of X that follows predicts its error (checked over many noise draws in the
+   tests and in benchmarks/bench_handeye.py).
 """
 
 from __future__ import annotations
@@ -33,7 +38,6 @@ import itertools
 import json
 import logging
 from dataclasses import dataclass, field
-from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -238,8 +242,10 @@ def check_motion(A: np.ndarray, names: list[str] | None = None) -> dict[str, flo
         raise CalibrationError(
             f"degenerate hand-eye motion: all {int(big.sum())} rotating motion pairs turn about "
             f"nearly the same axis (largest angle between rotation axes {spread:.2f} deg < "
-            f"{MIN_AXIS_SPREAD_DEG:g} deg); X is not determined along that axis. Take views "
-            f"rotated about at least two different axes"
+            f"{MIN_AXIS_SPREAD_DEG:g} deg), so X = T_tool_cam is not determined about that axis. "
+            f"Re-take the hand-eye views (calibration/handeye) rotating the scanner about at least "
+            f"two different axes between views, e.g. tilted towards different sides of the board, "
+            f"not only turned about one axis"
         )
     return {"axis_spread_deg": spread, "rotating_pairs": int(big.sum())}
 
@@ -331,6 +337,21 @@ def _delta(x: np.ndarray) -> np.ndarray:
     return make_transform(rotvec_to_matrix(x[:3]), x[3:])
 
 
+def _rodrigues(w: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) from rotation vectors; numpy only (the residual function
+    runs thousands of times on a few vectors, where scipy's per-call overhead dominates)."""
+    th2 = np.sum(w * w, axis=-1)[..., None, None]
+    th = np.sqrt(th2)
+    small = th2 < 1e-12
+    # sin(th)/th and (1 - cos th)/th^2, by their series below 1e-6 rad
+    a = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / np.where(small, 1.0, th))
+    b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / np.where(small, 1.0, th2))
+    K = np.zeros((*w.shape[:-1], 3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
+    return np.eye(3) + a * K + b * (K @ K)
+
+
 @dataclass(frozen=True)
 class Refinement:
     """Result of :func:`refine_handeye`."""
@@ -341,6 +362,12 @@ class Refinement:
     arm_corrections: np.ndarray  # (V, 6): flange rotation (rad, flange frame), position (mm, base)
     iterations: int
     covariance_X: np.ndarray  # (6, 6) of the perturbation X_true = X exp(rotation, translation)
+    # the standard deviations the final solve weighted with: image_px, arm_mm, arm_rad
+    sigmas: dict[str, float] = field(default_factory=dict)
+    # per group (image, arm_rotation, arm_position): weighted residual square sum over its
+    # redundancy at the solution; 1 when the group's sigma fits its residuals
+    variance_factors: dict[str, float] = field(default_factory=dict)
+    sigma_iterations: int = 0  # variance-component re-weightings done
 
     @property
     def rms_px(self) -> float:
@@ -355,6 +382,10 @@ def _corrected_arm(T_base_tool: np.ndarray, xi: np.ndarray) -> np.ndarray:
 
 
 _STEPS = np.r_[[1e-7] * 3, [1e-5] * 3, [1e-7] * 3, [1e-5] * 3, [1e-7] * 3, [1e-5] * 3]
+# lower bounds of estimated standard deviations (px, mm, rad): far below any real noise, they
+# keep exact (synthetic) data well conditioned
+SIGMA_FLOORS = {"image_px": 1e-4, "arm_mm": 1e-5, "arm_rad": 1e-8}
+VCE_X_TOL = 0.05  # re-weighting stops when it moves X by less than this many of its sigmas
 
 
 def _jacobian(fun, x: np.ndarray, *, V: int, N: int, with_arm: bool) -> np.ndarray:
@@ -395,6 +426,9 @@ def refine_handeye(
     arm_sigma_rad: float = 0.0,
     bias_correction: bool = True,
     rounds: int = 3,
+    estimate_sigmas: bool = False,
+    max_sigma_iterations: int = 25,
+    sigma_tol: float = 0.005,
 ) -> Refinement:
     """X and ``T_base_board`` minimising the reprojection error of measured points (V, N, 2).
 
@@ -406,6 +440,16 @@ def refine_handeye(
     image residuals weighted by ``sigma_px`` (maximum likelihood when the arm's error is
     Gaussian). With zero arm sigmas only X and ``T_base_board`` move (12 parameters). The
     circle-centre bias is re-predicted from the current estimate for each of ``rounds``.
+
+    With ``estimate_sigmas`` the three standard deviations given are starting values: they
+    are re-estimated from the solution by variance-component estimation (Förstner): each
+    group's weighted residual square sum over its redundancy (its share of the degrees of
+    freedom, from the hat matrix) rescales its variance, and the problem is re-solved, until
+    no sigma changes by more than ``sigma_tol`` (relative) or a re-weighting moves X by less
+    than ``VCE_X_TOL`` of its standard deviations. The arm's error and the board poses' image
+    error then share the disagreement between arm and images as their precisions say, which
+    a per-view comparison of poses cannot do (it charges the board poses' error to the arm).
+    The covariance is then not rescaled by the overall chi-square.
     """
     P = board.object_points()
     pts = np.asarray(points, dtype=np.float64)
@@ -419,8 +463,15 @@ def refine_handeye(
     def cam_board(X: np.ndarray, Tbb: np.ndarray, xi: np.ndarray) -> np.ndarray:
         return invert_transform(X) @ invert_transform(_corrected_arm(T_base_tool, xi)) @ Tbb
 
+    R_arm, t_arm = T_base_tool[:, :3, :3], T_base_tool[:, :3, 3]
+    sig = {"image_px": float(sigma_px), "arm_mm": float(arm_sigma_mm), "arm_rad": float(arm_sigma_rad)}
+    estimate = estimate_sigmas and with_arm
+    gain = dict.fromkeys(sig, 1.0)
+    last = dict.fromkeys(sig, 0.0)
     sol = None
+    factors: dict[str, float] = {}
     iterations = 0  # LM iterations over all rounds
+    sigma_iterations = 0
     for _ in range(rounds if correct else 1):
         if correct:
             offsets = np.array([
@@ -429,31 +480,90 @@ def refine_handeye(
             ])
         obs = pts - offsets
         X_base, Tbb_base = X.copy(), Tbb.copy()
-
-        def fun(x: np.ndarray, X_base=X_base, Tbb_base=Tbb_base, obs=obs) -> np.ndarray:
-            xv = x[12:].reshape(V, 6) if with_arm else np.zeros((V, 6))
-            Tc = cam_board(X_base @ _delta(x[:6]), Tbb_base @ _delta(x[6:12]), xv)
-            pc = np.einsum("vij,nj->vni", Tc[:, :3, :3], P) + Tc[:, None, :3, 3]
-            img = ((camera.project(pc) - obs) / sigma_px).ravel()
-            if not with_arm:
-                return img
-            prior = [(xv[:, :3] / arm_sigma_rad).ravel(), (xv[:, 3:] / arm_sigma_mm).ravel()]
-            return np.concatenate([img, *prior])
-
         x0 = np.zeros(12 + (6 * V if with_arm else 0))
         if with_arm:
             x0[12:] = xi.ravel()
-        sol = levenberg_marquardt(fun, dense_normal(partial(_jacobian, fun, V=V, N=N, with_arm=with_arm)), x0)
-        iterations += sol.iterations
+        for it in range(max_sigma_iterations + 1 if estimate else 1):
+
+            def fun(x: np.ndarray, X_base=X_base, Tbb_base=Tbb_base, obs=obs,
+                    s=(sig["image_px"], sig["arm_rad"], sig["arm_mm"])) -> np.ndarray:
+                xv = x[12:].reshape(V, 6) if with_arm else np.zeros((V, 6))
+                # T_cam_board = inv(X) inv(arm) T_base_board, composed on rotations and vectors
+                Rx = X_base[:3, :3] @ _rodrigues(x[:3])
+                tx = X_base[:3, :3] @ x[3:6] + X_base[:3, 3]
+                Rb = Tbb_base[:3, :3] @ _rodrigues(x[6:9])
+                tb = Tbb_base[:3, :3] @ x[9:12] + Tbb_base[:3, 3]
+                RaT = np.swapaxes(R_arm @ _rodrigues(xv[:, :3]), 1, 2)
+                Rc = Rx.T @ RaT @ Rb
+                tc = (RaT @ (tb - t_arm - xv[:, 3:])[:, :, None])[:, :, 0] @ Rx - tx @ Rx
+                pc = P @ np.swapaxes(Rc, 1, 2) + tc[:, None, :]
+                img = ((camera.project(pc) - obs) / s[0]).ravel()
+                if not with_arm:
+                    return img
+                prior = [(xv[:, :3] / s[1]).ravel(), (xv[:, 3:] / s[2]).ravel()]
+                return np.concatenate([img, *prior])
+
+            last_J: dict[str, np.ndarray] = {}
+
+            def jac(x: np.ndarray, fun=fun, last_J=last_J) -> np.ndarray:
+                last_J["x"], last_J["J"] = x.copy(), _jacobian(fun, x, V=V, N=N, with_arm=with_arm)
+                return last_J["J"]
+
+            prev = x0
+            sol = levenberg_marquardt(fun, dense_normal(jac), x0)
+            iterations += sol.iterations
+            x0 = sol.x
+            if not estimate:
+                break
+            if it > 0:
+                # where the data hardly tell a sigma (an arm far more precise than the board
+                # poses: the likelihood is flat in it), X no longer moves: stop there
+                d = sol.x[:6] - prev[:6]
+                if d @ np.linalg.solve(np.linalg.pinv(sol.normal)[:6, :6], d) < VCE_X_TOL**2:
+                    break
+            # the solver's last Jacobian is the one at its solution
+            J = last_J["J"] if np.array_equal(last_J["x"], sol.x) else jac(sol.x)
+            factors = _variance_factors(J, sol.normal, sol.fun, V, N)
+            # Förstner's update is sigma^2 <- sigma^2 f. It converges slowly for a group whose
+            # rows are nearly spent on the parameters (an arm far more precise than the board
+            # poses): while a group's steps keep one direction their gain doubles (to 16),
+            # when they turn it halves (to 1); a step changes a sigma by 4x at most.
+            new = {}
+            for g, key in (("image", "image_px"), ("arm_rotation", "arm_rad"), ("arm_position", "arm_mm")):
+                raw = 0.5 * np.log(max(factors[g], 1e-30))
+                gain[key] = min(2 * gain[key], 16.0) if raw * last[key] > 0 else max(gain[key] / 2, 1.0)
+                last[key] = raw
+                step = float(np.clip(gain[key] * raw, -np.log(4.0), np.log(4.0)))
+                # a group below its floor (exact data) counts as settled
+                new[key] = max(sig[key] * float(np.exp(step)), SIGMA_FLOORS[key])
+            if it == max_sigma_iterations or all(abs(new[k] / sig[k] - 1.0) <= sigma_tol for k in sig):
+                break
+            sig = new
+            sigma_iterations += 1
         X = X_base @ _delta(sol.x[:6])
         Tbb = Tbb_base @ _delta(sol.x[6:12])
         if with_arm:
             xi = sol.x[12:].reshape(V, 6)
-    res = sol.fun[: 2 * N * V].reshape(V, N, 2) * sigma_px
-    # covariance from the whitened problem, scaled by the reduced chi-square
-    dof = max(sol.fun.size - sol.x.size, 1)
-    cov = np.linalg.pinv(sol.normal) * (2.0 * sol.cost / dof)
-    return Refinement(X, Tbb, res, xi, iterations, cov[:6, :6])
+    res = sol.fun[: 2 * N * V].reshape(V, N, 2) * sig["image_px"]
+    cov = np.linalg.pinv(sol.normal)
+    if not estimate:
+        # the weights are relative only: scale by the reduced chi-square
+        cov *= 2.0 * sol.cost / max(sol.fun.size - sol.x.size, 1)
+    return Refinement(X, Tbb, res, xi, iterations, cov[:6, :6], sig, factors, sigma_iterations)
+
+
+def _variance_factors(J: np.ndarray, normal: np.ndarray, f: np.ndarray, V: int, N: int) -> dict[str, float]:
+    """Per residual group: weighted square sum over redundancy (Förstner's variance components).
+
+    A row's redundancy is ``1 - h`` with ``h`` the diagonal of the hat matrix
+    ``J (JᵀJ)⁻¹ Jᵀ`` of the whitened problem: the share of that observation not spent on the
+    parameters. Rows: image (2NV), arm rotation priors (3V), arm position priors (3V).
+    """
+    r = 1.0 - np.einsum("ij,ij->i", J @ np.linalg.pinv(normal), J)
+    n_img = 2 * N * V
+    groups = {"image": slice(0, n_img), "arm_rotation": slice(n_img, n_img + 3 * V),
+              "arm_position": slice(n_img + 3 * V, n_img + 6 * V)}
+    return {g: float(np.sum(f[sl] ** 2) / max(np.sum(r[sl]), 1e-9)) for g, sl in groups.items()}
 
 
 def point_uncertainty(X: np.ndarray, cov: np.ndarray, points_cam: np.ndarray) -> np.ndarray:
@@ -589,8 +699,11 @@ def solve_handeye(
     plain = refine_handeye(camera, board, pts, T_base_tool, X_ck, Tbb0, bias_correction=bias_correction)
     record("reprojection", plain.X)
     methods["reprojection"]["reprojection_rms_px"] = plain.rms_px
+    # the pose comparison charges the board poses' own error to the arm: the refinement
+    # re-estimates all three sigmas from its residuals (variance components)
     ref = refine_handeye(camera, board, pts, T_base_tool, plain.X, plain.T_base_board, sigma_px=sigma_px,
-                         arm_sigma_mm=s_mm, arm_sigma_rad=s_rad, bias_correction=bias_correction)
+                         arm_sigma_mm=s_mm, arm_sigma_rad=s_rad, bias_correction=bias_correction,
+                         estimate_sigmas=True)
     X, Tbb, res = ref.X, ref.T_base_board, ref.residuals
     record("refined", X)
     methods["refined"]["reprojection_rms_px"] = ref.rms_px
@@ -606,7 +719,10 @@ def solve_handeye(
         ),
     }
     methods["refined"]["noise_model"] = {
-        "image_sigma_px": sigma_px, "arm_sigma_mm": s_mm, "arm_sigma_rad": s_rad,
+        "image_sigma_px": ref.sigmas["image_px"], "arm_sigma_mm": ref.sigmas["arm_mm"],
+        "arm_sigma_rad": ref.sigmas["arm_rad"],
+        "initial": {"image_sigma_px": sigma_px, "arm_sigma_mm": s_mm, "arm_sigma_rad": s_rad},
+        "variance_factors": ref.variance_factors, "reweightings": ref.sigma_iterations,
         "arm_corrections_rms_mm": float(np.sqrt(np.mean(ref.arm_corrections[:, 3:] ** 2))),
         "arm_corrections_rms_rad": float(np.sqrt(np.mean(ref.arm_corrections[:, :3] ** 2))),
     }
