@@ -259,28 +259,38 @@ def _runs_nb(idx: np.ndarray, H: int, min_width: float):  # pragma: no cover - c
 
 
 @_jit
+def _gaps_nb(col, r0, r1, H, near):  # pragma: no cover - compiled
+    """numba twin of :func:`_gaps`, with the CLOSE flag (gap under ``near``) and EDGE."""
+    k = col.size
+    gaps_up = r0.astype(np.int64)
+    gaps_dn = (H - 1 - r1).astype(np.int64)
+    flags = np.zeros(k, np.uint8)
+    for i in range(k):
+        if i > 0 and col[i - 1] == col[i]:
+            gaps_up[i] = r0[i] - r1[i - 1] - 1
+            if gaps_up[i] < near:
+                flags[i] |= 2
+        if i + 1 < k and col[i + 1] == col[i]:
+            gaps_dn[i] = r0[i + 1] - r1[i] - 1
+            if gaps_dn[i] < near:
+                flags[i] |= 2
+        if r0[i] == 0 or r1[i] == H - 1:
+            flags[i] |= 8
+    return gaps_up, gaps_dn, flags
+
+
+@_jit
 def _windows_nb(flat, H, col, r0, r1, pad, bg_pixels, full):  # pragma: no cover - compiled
     """numba twin of the window phase of :func:`_grey_centre_numpy` (same arithmetic)."""
     k = col.size
     v = np.empty(k)
     sw = np.empty(k)
     peak = np.empty(k)
-    flags = np.zeros(k, np.uint8)
-    near = 2 * (pad + bg_pixels)
+    gaps_up, gaps_dn, flags = _gaps_nb(col, r0, r1, H, 2 * (pad + bg_pixels))
     for i in range(k):
         c = col[i]
-        gu = r0[i]
-        gd = H - 1 - r1[i]
-        if i > 0 and col[i - 1] == c:
-            gu = r0[i] - r1[i - 1] - 1
-            if gu < near:
-                flags[i] |= 2
-        if i + 1 < k and col[i + 1] == c:
-            gd = r0[i + 1] - r1[i] - 1
-            if gd < near:
-                flags[i] |= 2
-        if r0[i] == 0 or r1[i] == H - 1:
-            flags[i] |= 8
+        gu = gaps_up[i]
+        gd = gaps_dn[i]
         lo = r0[i] - min(pad, gu // 2)
         hi = r1[i] + min(pad, gd // 2)
         base = c * H
@@ -465,27 +475,16 @@ def _gauss_windows_nb(flat, H, col, r0, r1, ext, nbg):  # pragma: no cover - com
     """
     k = col.size
     bvar = np.full(k, np.nan)
-    flags = np.zeros(k, np.uint8)
     lo_w = np.empty(k, np.int64)
     hi_w = np.empty(k, np.int64)
     bc = np.zeros(k)  # background line: bg(r) = bc + bs * (r - r0)
     bs = np.zeros(k)
-    near = 2 * (ext + nbg)
+    gaps_up, gaps_dn, flags = _gaps_nb(col, r0, r1, H, 2 * (ext + nbg))
     # windows and background lines
     for i in range(k):
         c = col[i]
-        gu = r0[i]
-        gd = H - 1 - r1[i]
-        if i > 0 and col[i - 1] == c:
-            gu = r0[i] - r1[i - 1] - 1
-            if gu < near:
-                flags[i] |= 2
-        if i + 1 < k and col[i + 1] == c:
-            gd = r0[i + 1] - r1[i] - 1
-            if gd < near:
-                flags[i] |= 2
-        if r0[i] == 0 or r1[i] == H - 1:
-            flags[i] |= 8
+        gu = gaps_up[i]
+        gd = gaps_dn[i]
         # the window and its background pixels stay on this run's side of the gap's midpoint;
         # a steep stripe's long run has long tails along the column: the reach grows with it
         reach = max(ext, (r1[i] - r0[i] + 1) // 2)
