@@ -381,11 +381,24 @@ def _triangulate(p: argparse.ArgumentParser) -> None:
     "fuse",
     "fuse the points of a scan into an Open3D cloud (PLY), optionally a mesh (STL)",
     """
-    Statistical outlier removal, optional voxel down-sampling, normals; writes the cloud
+    Optional refinement of every frame's arm pose from the scan itself (where line A of one
+    frame crosses line B of another, the two must meet; the arm's precision is the prior),
+    statistical outlier removal, optional voxel down-sampling, normals; writes the cloud
     as PLY in the base frame (mm) and, if asked, a Poisson or ball-pivoting mesh as STL.
     """,
 )
 def _fuse(p: argparse.ArgumentParser) -> None:
+    def auto_or_positive(text: str) -> float | None:
+        if text.lower() in ("auto", "none", "null"):
+            return None
+        try:
+            x = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected 'auto' or a number > 0, got {text!r}") from None
+        if not x > 0:
+            raise argparse.ArgumentTypeError(f"expected 'auto' or a number > 0, got {text!r}")
+        return x
+
     p.add_argument("points", type=Path, help="points parquet")
     p.add_argument("--out", type=Path, required=True, help="PLY to write")
     p.add_argument("--stats", type=Path, help="JSON with the counts before and after")
@@ -395,6 +408,19 @@ def _fuse(p: argparse.ArgumentParser) -> None:
     p.add_argument("--normal-radius-mm", type=float, default=0.5, help="normals search radius")
     p.add_argument("--mesh", choices=("none", "poisson", "ball_pivoting"), default="none")
     p.add_argument("--mesh-out", type=Path, help="STL to write when --mesh is not none")
+    p.add_argument("--refine-poses", type=_bool, default=False,
+                   help="refine each frame's arm pose from the A-B stripe crossings (default false)")
+    p.add_argument("--frames", type=Path,
+                   help="the scan's frames.csv: frame times and flange positions for the refinement "
+                        "(without it the frames' pose errors are taken as independent)")
+    p.add_argument("--arm-precision-mm", type=float, default=0.02,
+                   help="arm's stated precision, read as 2 sigma of the 3-D position error (mm)")
+    p.add_argument("--arm-precision-rad", type=auto_or_positive, default=None,
+                   help="the same for the orientation (rad); auto = the mm figure over 300 mm")
+    p.add_argument("--arm-smooth-fraction", type=float, default=0.9,
+                   help="share of the arm's error sigma that is correlated in time (0..1)")
+    p.add_argument("--arm-corr-time-s", type=float, default=0.3,
+                   help="correlation time of that part of the arm's error (s)")
     _threads(p)
 
     def run(a: argparse.Namespace) -> int:
@@ -403,7 +429,10 @@ def _fuse(p: argparse.ArgumentParser) -> None:
         run_fuse(
             a.points, a.out, stats=a.stats, neighbours=a.neighbours, std_ratio=a.std_ratio,
             voxel_mm=a.voxel_mm, normal_radius_mm=a.normal_radius_mm, mesh=a.mesh,
-            mesh_out=a.mesh_out, threads=a.threads,
+            mesh_out=a.mesh_out, threads=a.threads, refine_poses=a.refine_poses,
+            frames=a.frames, arm_precision_mm=a.arm_precision_mm,
+            arm_precision_rad=a.arm_precision_rad, arm_smooth_fraction=a.arm_smooth_fraction,
+            arm_corr_time_s=a.arm_corr_time_s,
         )
         return 0
 

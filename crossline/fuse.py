@@ -10,6 +10,12 @@ camera frame and in the base frame, and one rigid motion (Kabsch) maps the first
 second, its translation being the camera centre. Frames whose points are collinear (a
 single stripe on a plane) borrow the centre of the nearest frame that has one.
 
+Optionally (``refine_poses``) the arm's per-frame poses are first refined from the scan
+itself (:mod:`crossline.refine`): where an A stripe crosses a B stripe of another frame the
+two must meet, and the per-frame rigid corrections that make them meet (maximum a
+posteriori, with the arm's stated precision as prior) move every point of the frame. The
+corrections and what the solve saw go into the stats JSON under ``refine``.
+
 The PLY is binary little-endian with float64 coordinates (``x y z``, then ``nx ny nz`` as
 float32, ``laser`` as uchar 1 = A / 2 = B, ``frame`` as int32); Open3D and other readers
 read it as an ordinary point cloud with normals. It is written by this module rather than
@@ -28,6 +34,7 @@ import numpy as np
 
 from crossline.atomic import atomic_path, write_json
 from crossline.errors import StageError
+from crossline.refine import ArmPrior
 
 __all__ = [
     "LASER_CODES",
@@ -193,11 +200,19 @@ def fuse_cloud(
     std_ratio: float = 3.0,
     voxel_mm: float = 0.0,
     normal_radius_mm: float = 0.5,
+    refine_prior: ArmPrior | None = None,
+    frame_table: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    threads: int = 1,
 ) -> FusedCloud:
-    """Statistical outlier removal, optional voxel down-sampling (per laser), oriented normals.
+    """Optional pose refinement, statistical outlier removal, optional voxel down-sampling
+    (per laser), oriented normals.
 
     ``laser`` holds codes (1 = A, 2 = B) or labels ("A"/"B"); ``points_cam`` (N, 3), the same
-    points in the camera frame, orients the normals towards the camera.
+    points in the camera frame, orients the normals towards the camera. With
+    ``refine_prior`` (and ``points_cam``, which gives each frame's camera centre) every
+    frame's pose is refined first (:func:`crossline.refine.refine_frames`); ``frame_table``
+    = (frame numbers, times in s, reported flange positions (M, 3)) from the scan's
+    frames.csv gives the prior its time correlation and the rotations their centre.
     """
     import open3d as o3d
 
@@ -210,6 +225,8 @@ def fuse_cloud(
     stats: dict[str, Any] = {"n_input": len(p), "by_laser_input": _by_laser(lab)}
     if len(p) == 0:
         raise StageError("no points to fuse")
+    if refine_prior is not None:
+        p, stats["refine"] = _refine(p, lab, fr, points_cam, refine_prior, frame_table, threads)
 
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
     if neighbours > 0 and len(p) > neighbours:
@@ -244,6 +261,58 @@ def fuse_cloud(
         stats["bbox_min_mm"] = vp.min(0).tolist()
         stats["bbox_max_mm"] = vp.max(0).tolist()
     return FusedCloud(vp, normals, vlab, vfr.astype(np.int32), stats)
+
+
+def _refine(
+    p: np.ndarray, lab: np.ndarray, fr: np.ndarray, points_cam: np.ndarray | None,
+    prior: ArmPrior, frame_table: tuple[np.ndarray, np.ndarray, np.ndarray] | None, threads: int,
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Points with refined per-frame poses, and the stats of the refinement (JSON-ready)."""
+    from crossline.refine import refine_frames
+
+    if points_cam is None:
+        raise StageError("pose refinement needs the points in the camera frame (x_cam, y_cam, "
+                         "z_cam) to place each frame's camera; the points file has none")
+    frames, views = camera_centres(fr, np.asarray(points_cam, dtype=np.float64), p)
+    if not np.isfinite(views).all():
+        raise StageError("pose refinement: no frame has enough non-collinear points to place "
+                         "its camera")
+    times = origins = None
+    if frame_table is not None:
+        tf, tt, to = (np.asarray(a) for a in frame_table)
+        order = np.argsort(tf, kind="stable")
+        tf, tt, to = tf[order], tt[order], to[order]
+        pos = np.clip(np.searchsorted(tf, frames), 0, max(len(tf) - 1, 0))
+        missing = frames if len(tf) == 0 else frames[tf[pos] != frames]
+        if len(missing):
+            raise StageError(f"pose refinement: frame(s) {missing[:5].tolist()} of the points are "
+                             "not in the scan's frames table")
+        times, origins = tt[pos].astype(np.float64), to[pos].astype(np.float64)
+    ref = refine_frames(fr, lab, p, views, prior, frames=frames, times=times, origins=origins,
+                        threads=threads)
+    d = dict(ref.diagnostics)
+    # timings go to the log, not to the stats: the same points must give the same bytes
+    log.info("pose refinement: %d crossings, %d frames, %.2f s (crossings %.2f s)", d["crossings"],
+             d["frames"], d.pop("seconds"), d.pop("seconds_crossings"))
+    info: dict[str, Any] = {
+        "method": "A-B stripe crossings between frames, MAP per-frame rigid corrections",
+        "prior": {"sigma_mm": prior.sigma_mm, "sigma_rad": prior.sigma_rad,
+                  "smooth_fraction": prior.smooth_fraction, "corr_time_s": prior.corr_time_s,
+                  "time_correlated": times is not None,
+                  "rotation_centre": "flange (frames table)" if origins is not None
+                  else "camera centre"},
+        **{k: (float(v) if isinstance(v, np.floating) else v) for k, v in d.items()},
+        "per_frame": {
+            "frame": frames.tolist(),
+            # estimated error of the reported pose (reported minus true), base frame: rotation
+            # about the flange (or camera) origin, and the origin's position error
+            "rotation_rad": ref.rotation.tolist(),
+            "translation_mm": ref.translation.tolist(),
+            "origin_mm": ref.origins.tolist(),
+            "correction_rms_mm": ref.frame_rms.tolist(),
+        },
+    }
+    return ref.points, info
 
 
 def _by_laser(codes: np.ndarray) -> dict[str, int]:
@@ -398,8 +467,21 @@ def run_fuse(
     mesh: str = "none",
     mesh_out: Path | None = None,
     threads: int = 1,
+    refine_poses: bool = False,
+    frames: Path | None = None,
+    arm_precision_mm: float = 0.02,
+    arm_precision_rad: float | None = None,
+    arm_smooth_fraction: float = 0.9,
+    arm_corr_time_s: float = 0.3,
 ) -> FusedCloud:
-    """The ``fuse`` stage: points parquet -> fused PLY (+ stats JSON, + STL mesh if asked)."""
+    """The ``fuse`` stage: points parquet -> fused PLY (+ stats JSON, + STL mesh if asked).
+
+    ``refine_poses`` refines every frame's arm pose from the scan first, with the arm's
+    precision as prior: ``arm_precision_mm`` (and ``arm_precision_rad``, default the mm
+    figure over 300 mm) read as 2 sigma of the 3-D error, of which ``arm_smooth_fraction``
+    of each sigma is correlated in time over ``arm_corr_time_s``; ``frames`` (the scan's
+    frames.csv) gives the frame times and the flange positions.
+    """
     import pandas as pd
 
     points = Path(points)
@@ -412,6 +494,19 @@ def run_fuse(
             f"fuse parameters out of range: neighbours={neighbours} (>= 0), std_ratio={std_ratio} "
             f"(> 0), voxel_mm={voxel_mm} (>= 0), normal_radius_mm={normal_radius_mm} (> 0)"
         )
+    prior = None
+    if refine_poses:
+        if not (arm_precision_mm > 0 and (arm_precision_rad is None or arm_precision_rad > 0)
+                and 0 <= arm_smooth_fraction <= 1 and arm_corr_time_s > 0):
+            raise StageError(
+                f"pose refinement parameters out of range: arm_precision_mm={arm_precision_mm} "
+                f"(> 0), arm_precision_rad={arm_precision_rad} (> 0 or none), "
+                f"arm_smooth_fraction={arm_smooth_fraction} (0..1), "
+                f"arm_corr_time_s={arm_corr_time_s} (> 0)")
+        prior = ArmPrior.from_precision(arm_precision_mm, arm_precision_rad,
+                                        smooth_fraction=arm_smooth_fraction,
+                                        corr_time_s=arm_corr_time_s)
+    table = _read_frames(frames) if refine_poses and frames is not None else None
     try:
         df = pd.read_parquet(points)
     except Exception as exc:  # pyarrow raises several types for broken files
@@ -431,11 +526,17 @@ def run_fuse(
     cloud = fuse_cloud(
         xyz[finite], laser[finite], frame[finite], cam, neighbours=neighbours,
         std_ratio=std_ratio, voxel_mm=voxel_mm, normal_radius_mm=normal_radius_mm,
+        refine_prior=prior, frame_table=table, threads=threads,
     )
     cloud.stats["n_non_finite"] = int((~finite).sum())
     cloud.stats["parameters"] = {"neighbours": neighbours, "std_ratio": std_ratio,
                                  "voxel_mm": voxel_mm, "normal_radius_mm": normal_radius_mm,
-                                 "mesh": mesh}
+                                 "mesh": mesh, "refine_poses": bool(refine_poses)}
+    if refine_poses:
+        cloud.stats["parameters"].update(
+            arm_precision_mm=arm_precision_mm, arm_precision_rad=arm_precision_rad,
+            arm_smooth_fraction=arm_smooth_fraction, arm_corr_time_s=arm_corr_time_s,
+            frames_file=None if frames is None else Path(frames).name)
     cloud.stats["points_file"] = points.name
     write_ply(out, cloud)
     if mesh != "none":
@@ -448,6 +549,33 @@ def run_fuse(
     if stats is not None:
         write_json(stats, cloud.stats)
     return cloud
+
+
+def _read_frames(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Frame numbers, times (s) and reported flange positions (mm) of a scan's frames.csv."""
+    import pandas as pd
+
+    path = Path(path)
+    if not path.is_file():
+        raise StageError(f"{path}: frames table not found (the scan's frames.csv)")
+    try:
+        df = pd.read_csv(path)
+    except Exception as exc:  # pandas raises several types for broken CSV
+        raise StageError(f"{path}: cannot be read as CSV ({exc})") from exc
+    df.columns = [str(c).strip() for c in df.columns]
+    missing = [c for c in ("frame", "time_s", "x", "y", "z") if c not in df.columns]
+    if missing:
+        raise StageError(f"{path}: missing column(s) {missing}; expected frame,time_s,lasers,x,y,z,"
+                         "qw,qx,qy,qz")
+    try:
+        fr = df["frame"].to_numpy(np.int64)
+        t = df["time_s"].to_numpy(np.float64)
+        xyz = df[["x", "y", "z"]].to_numpy(np.float64)
+    except (ValueError, TypeError) as exc:
+        raise StageError(f"{path}: frame, time_s, x, y, z must be numbers ({exc})") from exc
+    if not (np.isfinite(t).all() and np.isfinite(xyz).all()):
+        raise StageError(f"{path}: time_s and x, y, z must be finite")
+    return fr, t, xyz
 
 
 def load_stats(path: str | Path) -> dict[str, Any] | None:

@@ -169,3 +169,82 @@ def test_points_in_camera_and_base_agree(plate_scan):
     pb = df[["x", "y", "z"]].to_numpy()
     back = np.einsum("nij,nj->ni", invert_transform(Ts)[f, :3, :3], pb) + invert_transform(Ts)[f, :3, 3]
     assert np.abs(back - pc).max() < 1e-9
+
+
+# ----------------------------------------------------------------------------- pose refinement
+
+
+@pytest.fixture(scope="module")
+def posed_plate(tmp_path_factory):
+    """A plate scan whose reported arm poses carry known errors, as the stage's files."""
+    from crossline.geometry import matrix_to_quat
+    from tests.test_refine import PRIOR, Scan, X, arm_errors, reported
+
+    s = Scan("plane", frames=60, rays=1200)
+    e = arm_errors(len(s.T), PRIOR, seed=8)
+    p, _ = reported(s.df, s.T, e)
+    root = tmp_path_factory.mktemp("posed")
+    df = s.df.copy()
+    df[["x", "y", "z"]] = p
+    write_parquet(root / "plate.parquet", df)
+    # frames.csv: the REPORTED flange poses (what the arm says) and the frame times
+    Tt = s.T @ invert_transform(X)
+    Rt = Tt[:, :3, :3]
+    dth = np.einsum("fji,fj->fi", Rt, e[:, :3])
+    Trep = make_transform(Rt @ rotvec_to_matrix(dth), Tt[:, :3, 3] + e[:, 3:])
+    q = matrix_to_quat(Trep[:, :3, :3])
+    states = np.array(["A", "B", "AB"])[np.arange(len(s.T)) % 3]
+    pd.DataFrame({"frame": np.arange(len(s.T)), "time_s": s.times, "lasers": states,
+                  "x": Trep[:, 0, 3], "y": Trep[:, 1, 3], "z": Trep[:, 2, 3],
+                  "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3]}).to_csv(
+        root / "frames.csv", index=False, float_format="%.10f")
+    return root
+
+
+def test_run_fuse_refines_the_poses(posed_plate, tmp_path):
+    pq, frames = posed_plate / "plate.parquet", posed_plate / "frames.csv"
+    plain = run_fuse(pq, tmp_path / "plain.ply", stats=tmp_path / "plain.json")
+    a = run_fuse(pq, tmp_path / "a.ply", stats=tmp_path / "a.json", refine_poses=True, frames=frames)
+    run_fuse(pq, tmp_path / "b.ply", stats=tmp_path / "b.json", refine_poses=True, frames=frames)
+    assert _sha(tmp_path / "a.ply") == _sha(tmp_path / "b.ply")
+    assert (tmp_path / "a.json").read_text() == (tmp_path / "b.json").read_text()
+    # the plate z = 0 is flat again: residuals to its own plane from ~4 µm to under 1 µm
+    def flat(c):
+        A = np.column_stack([np.ones(len(c.points)), c.points[:, :2]])
+        z = c.points[:, 2]
+        return np.sqrt(np.mean((z - A @ np.linalg.lstsq(A, z, rcond=None)[0]) ** 2))
+    assert flat(plain) > 0.003 and flat(a) < 0.25 * flat(plain)
+    # the PLY is the same format, every point keeps its laser and frame
+    r = read_ply(tmp_path / "a.ply")
+    assert len(r["points"]) == len(a.points) and set(r) == set(read_ply(tmp_path / "plain.ply"))
+    assert np.array_equal(np.sort(np.unique(r["frame"])), np.sort(np.unique(plain.frame)))
+    st = json.loads((tmp_path / "a.json").read_text())
+    ref = st["refine"]
+    assert st["parameters"]["refine_poses"] is True and "refine" not in json.loads(
+        (tmp_path / "plain.json").read_text())
+    assert ref["prior"]["time_correlated"] and ref["prior"]["rotation_centre"].startswith("flange")
+    assert ref["crossings"] > 100 and ref["gap_rms_after_mm"] < ref["gap_rms_before_mm"] / 5
+    pf = ref["per_frame"]
+    assert pf["frame"] == list(range(60)) and np.shape(pf["rotation_rad"]) == (60, 3)
+    assert len(pf["correction_rms_mm"]) == 60 and max(pf["correction_rms_mm"]) < 0.05
+
+
+def test_run_fuse_refinement_needs_what_it_names(posed_plate, tmp_path):
+    pq = posed_plate / "plate.parquet"
+    df = pd.read_parquet(pq)
+    bad = tmp_path / "frames.csv"
+    pd.read_csv(posed_plate / "frames.csv").iloc[:-5].to_csv(bad, index=False)
+    with pytest.raises(StageError, match="not in the scan's frames table"):
+        run_fuse(pq, tmp_path / "x.ply", refine_poses=True, frames=bad)
+    nocam = tmp_path / "nocam.parquet"
+    write_parquet(nocam, df.drop(columns=["x_cam", "y_cam", "z_cam"]))
+    with pytest.raises(StageError, match="camera frame"):
+        run_fuse(nocam, tmp_path / "x.ply", refine_poses=True)
+    with pytest.raises(StageError, match="arm_precision_mm"):
+        run_fuse(pq, tmp_path / "x.ply", refine_poses=True, arm_precision_mm=0.0)
+    with pytest.raises(StageError, match="frames table not found"):
+        run_fuse(pq, tmp_path / "x.ply", refine_poses=True, frames=tmp_path / "none.csv")
+    assert not (tmp_path / "x.ply").exists()
+    # without the frames table it still runs: independent per-frame prior, camera centres
+    c = run_fuse(pq, tmp_path / "y.ply", refine_poses=True)
+    assert c.stats["refine"]["prior"]["time_correlated"] is False

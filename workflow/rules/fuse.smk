@@ -4,7 +4,9 @@
 rule fuse_points:
     input:
         points="data/interim/{capture}/points/{scan}.parquet",
-        code=code("crossline.fuse"),
+        # frame times and reported flange positions: the pose refinement's prior and centres
+        frames="data/raw/{capture}/scans/{scan}/frames.csv",
+        code=code("crossline.fuse", "crossline.refine"),
     output:
         cloud="data/processed/{capture}/{scan}.ply",
         stats="data/processed/{capture}/{scan}.fuse.json",
@@ -14,6 +16,11 @@ rule fuse_points:
         voxel_mm=config["fuse"]["voxel_mm"],
         normal_radius_mm=config["fuse"]["normal_radius_mm"],
         mesh=config["fuse"]["mesh"],
+        refine_poses=config["fuse"]["refine_poses"],
+        arm_precision_mm=config["fuse"]["arm_precision_mm"],
+        arm_precision_rad=config["fuse"]["arm_precision_rad"],
+        arm_smooth_fraction=config["fuse"]["arm_smooth_fraction"],
+        arm_corr_time_s=config["fuse"]["arm_corr_time_s"],
     log:
         "logs/{capture}/fuse_points/{scan}.log",
     benchmark:
@@ -28,4 +35,7 @@ rule fuse_points:
         "--neighbours {params.neighbours} --std-ratio {params.std_ratio} "
         "--voxel-mm {params.voxel_mm} --normal-radius-mm {params.normal_radius_mm} "
         "--mesh {params.mesh} --mesh-out data/processed/{wildcards.capture}/{wildcards.scan}.stl "
+        "--refine-poses {params.refine_poses} --frames {input.frames} "
+        "--arm-precision-mm {params.arm_precision_mm} --arm-precision-rad {params.arm_precision_rad} "
+        "--arm-smooth-fraction {params.arm_smooth_fraction} --arm-corr-time-s {params.arm_corr_time_s} "
         "--threads {threads} > {log} 2>&1"
