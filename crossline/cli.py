@@ -354,6 +354,9 @@ def _triangulate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bridge-columns", type=int, default=8,
                    help="interpolate a reference stripe over gaps of up to this many columns "
                         "before AB centres are matched to it (default 8; 0 = off, the paper)")
+    p.add_argument("--track-references", type=_bool, default=True,
+                   help="an AB frame's labelled stripes are the references of the next AB frame "
+                        "(default true; false = the paper: references from A and B frames only)")
     p.add_argument("--smooth-px", type=int, default=5,
                    help="smooth each centre line along the stripe over this many columns "
                         "(odd; local quadratic; default 5; 1 = off)")
@@ -367,7 +370,8 @@ def _triangulate(p: argparse.ArgumentParser) -> None:
             a.capture, a.scan, a.stripes, a.camera, a.lasers, a.handeye, a.out,
             threshold_px=a.threshold_px, max_frame_gap=a.max_frame_gap,
             ambiguity_px=a.ambiguity_px, predict=a.predict, end_trim_px=a.end_trim_px,
-            smooth_px=a.smooth_px, bridge_columns=a.bridge_columns, stats=a.stats,
+            smooth_px=a.smooth_px, bridge_columns=a.bridge_columns,
+            track_references=a.track_references, stats=a.stats,
         )
         return 0
 

@@ -20,6 +20,10 @@ within ``T`` px (the nearest if both are). Beyond the paper:
 - **one centre per reference centre**: if two AB centres of one column are matched to the same
   reference centre, only the nearer keeps the label (the other is a conflict, dropped); two
   segments of one laser in one column (at a step) have two reference centres and both stay;
+- **one laser per stripe**: the labelled AB centres are linked into stripe traces by position
+  alone; a run of up to three centres with one label inside a trace of the other is dropped as
+  inconsistent: a stale reference of one laser can lie on the other's stripe for a column or
+  two (an occlusion edge, a limb), never along a whole stripe;
 - merged segments (flag ``MERGED`` from the extractor: two stripes in one blob) of AB frames
   are dropped, centres of ``off`` frames are dropped; every drop is counted by reason.
 
@@ -34,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from crossline.centreline import link_traces, trace_position
 from crossline.errors import StageError
 from crossline.jit import jit
 from crossline.stripes import MERGED
@@ -41,8 +46,10 @@ from crossline.stripes import MERGED
 __all__ = ["DROP_REASONS", "Disambiguator", "bridge_gaps", "disambiguate", "nearest_in_column",
            "reference_gap"]
 
-DROP_REASONS = ("off_frame", "merged", "no_reference", "unmatched", "ambiguous", "conflict")
+DROP_REASONS = ("off_frame", "merged", "no_reference", "unmatched", "ambiguous", "conflict",
+                "inconsistent")
 _BIG = 1.0e6  # key = u * _BIG + v orders centres by column, then row (|v| < 1e5 px)
+ISLAND_MAX = 3  # longest run of one label inside a stripe trace of the other that is dropped
 
 
 def nearest_in_column(
@@ -163,7 +170,9 @@ class Disambiguator:
     ambiguity_px: float = 3.0
     predict: bool = True
     bridge_columns: int = 0
+    track: bool = False
     refs: dict[str, list[_Ref]] = field(default_factory=lambda: {"A": [], "B": []})
+    tracked: dict[str, _Ref] = field(default_factory=dict)
     counts: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -183,10 +192,28 @@ class Disambiguator:
         c.setdefault("AB_frames_without_reference", {"A": 0, "B": 0})
 
     def _reference(self, laser: str, frame: int) -> tuple[np.ndarray, np.ndarray] | None:
-        """The laser's reference centres for ``frame`` (predicted if asked), or None if stale."""
+        """The laser's reference centres for ``frame`` (predicted if asked), or None if stale.
+
+        With ``track``, the labelled stripe of the latest AB frame (when newer than the laser's
+        own latest frame) is the reference where it has centres, the prediction from the
+        laser's own frames filling the other columns, and all of it is moved on to ``frame``
+        at its rate since the laser's latest frame.
+        """
         refs = self.refs[laser]
         if not refs or frame - refs[-1].frame > self.max_frame_gap:
             return None
+        t = self.tracked.get(laser)
+        if not (self.track and t is not None and t.frame > refs[-1].frame):
+            return self._predicted(refs, frame)
+        # the tracked stripe, completed where it has no centre by the prediction at its frame,
+        # then moved on at its rate since the laser's own latest frame
+        pu, pv = self._predicted(refs, t.frame)
+        free = ~np.isin(pu, t.u)
+        last = _sorted_ref(t.frame, np.concatenate([t.u, pu[free]]), np.concatenate([t.v, pv[free]]))
+        return self._predicted([refs[-1], last], frame)
+
+    def _predicted(self, refs: list[_Ref], frame: int) -> tuple[np.ndarray, np.ndarray]:
+        """The latest frame of a laser, each centre moved on at its rate since the frame before."""
         last = refs[-1]
         if not self.predict or len(refs) < 2 or last.u.size == 0:
             return last.u, last.v
@@ -267,6 +294,13 @@ class Disambiguator:
                           & (ref_idx[o[1:]] == ref_idx[o[:-1]]))
             c["dropped"]["conflict"] += int(dup.sum())
             lab = np.where(dup, 0, lab)
+        inconsistent = _trace_minority(u, v, lab, merged)
+        c["dropped"]["inconsistent"] += int(inconsistent.sum())
+        lab = np.where(inconsistent, 0, lab)
+        if self.track:  # this frame's labelled stripes: the freshest reference for the next
+            for laser, code in (("A", 1), ("B", 2)):
+                mine = lab == code
+                self.tracked[laser] = _sorted_ref(frame, u[mine], v[mine], self.bridge_columns)
         label[lab == 1] = "A"
         label[lab == 2] = "B"
         dist[lab > 0] = d[lab > 0]
@@ -275,6 +309,39 @@ class Disambiguator:
             c["labelled"][laser] += k
             c["labelled_in_AB"][laser] += k
         return label, dist
+
+
+def _trace_minority(u: np.ndarray, v: np.ndarray, lab: np.ndarray, merged: np.ndarray) -> np.ndarray:
+    """AB-frame centres whose label (1 = A, 2 = B) is a short island inside a stripe of the other.
+
+    A stripe is one laser along its length. The labelled centres are linked into traces by
+    position alone; along a trace, a run of at most ``ISLAND_MAX`` centres with one label
+    between runs of the other label is an island: a stale reference of one laser lying on the
+    other's stripe for a column or two (an occlusion edge, a limb). Where two stripes really
+    meet at a shallow angle and a trace passes from one to the other, the label changes once,
+    with long runs on both sides: nothing is dropped there.
+    """
+    out = np.zeros(u.size, bool)
+    idx = np.flatnonzero(~merged & (lab > 0))
+    if idx.size < 3:
+        return out
+    prev = link_traces(np.zeros(idx.size, np.int64), np.zeros(idx.size, "<U1"), u[idx], v[idx])
+    trace, _, _ = trace_position(prev, u[idx])
+    order = np.lexsort((u[idx], trace))
+    t, la = trace[order], lab[idx][order]
+    new_run = np.r_[True, (t[1:] != t[:-1]) | (la[1:] != la[:-1])]
+    run = np.cumsum(new_run) - 1
+    starts = np.flatnonzero(new_run)
+    length = np.diff(np.r_[starts, t.size])
+    run_trace, run_lab = t[starts], la[starts]
+    same_trace_before = np.r_[False, run_trace[1:] == run_trace[:-1]]
+    same_trace_after = np.r_[run_trace[:-1] == run_trace[1:], False]
+    before = np.r_[0, run_lab[:-1]]
+    after = np.r_[run_lab[1:], 0]
+    island = (length <= ISLAND_MAX) & same_trace_before & same_trace_after & (before == after) \
+        & (before != run_lab)
+    out[idx[order]] = island[run]
+    return out
 
 
 def disambiguate(

@@ -56,6 +56,7 @@ POINTS_SCHEMA = pa.schema(
     ]
 )
 _META_KEY = b"crossline"
+MIN_TRACE_COLUMNS = 3  # shorter traces are dropped with the trimmed stripe ends
 
 
 def triangulate(
@@ -122,6 +123,7 @@ def run_triangulate(
     end_trim_px: float = 8.0,
     smooth_px: int = 1,
     bridge_columns: int = 8,
+    track_references: bool = True,
     stats: str | Path | None = None,
 ) -> dict[str, Any]:
     """Label, triangulate and write the points of one scan; return the counts.
@@ -131,7 +133,8 @@ def run_triangulate(
     ``end_trim_px`` pixels (along the stripe) of the end of their trace are dropped; ``smooth_px`` > 1 smooths
     the centre line along each trace over that many columns (:mod:`crossline.centreline`).
     Up to ``bridge_columns`` columns missing in a reference stripe between two of its centres
-    are interpolated before AB centres are matched (:func:`crossline.disambiguate.bridge_gaps`).
+    are interpolated before AB centres are matched (:func:`crossline.disambiguate.bridge_gaps`);
+    with ``track_references`` an AB frame's labelled stripes are the references of the next.
     ``max_frame_gap=None`` allows one frame more than the scan's own laser pattern needs
     (:func:`crossline.disambiguate.reference_gap`): 3 for the paper's A, B, AB.
     """
@@ -155,7 +158,8 @@ def run_triangulate(
     pat = laser_pattern(sc.lasers)
     if max_frame_gap is None:  # one dropped or repeated frame is tolerated
         max_frame_gap = reference_gap(pat["period"]) + 1
-    dis = Disambiguator(threshold_px, max_frame_gap, ambiguity_px, predict, bridge_columns)
+    dis = Disambiguator(threshold_px, max_frame_gap, ambiguity_px, predict, bridge_columns,
+                        track_references)
     pf = pq.ParquetFile(stripes)
     next_pos = 0  # frames before this scan position have been given to the disambiguator
     n_points = 0
@@ -211,6 +215,8 @@ def run_triangulate(
             from_start = np.where(start_open, np.inf, from_start)
             to_end = np.where(end_open, np.inf, to_end)
             inner = np.minimum(from_start, to_end) >= end_trim_px
+            # a trace of a few columns is no stripe, whatever stops it (a glint, a stray centre)
+            inner &= np.bincount(trace, minlength=trace.size)[trace] >= MIN_TRACE_COLUMNS
             v_used, whole = smooth_along(trace, u[idx], v[idx], smooth_px)
             trimmed["stripe_end"] += int((~inner).sum())
             trimmed["smoothing_window"] += int((inner & ~whole).sum())
@@ -250,7 +256,7 @@ def run_triangulate(
             "params": {"threshold_px": threshold_px, "max_frame_gap": max_frame_gap,
                        "ambiguity_px": ambiguity_px, "predict": bool(predict),
                        "end_trim_px": end_trim_px, "smooth_px": smooth_px,
-                       "bridge_columns": bridge_columns},
+                       "bridge_columns": bridge_columns, "track_references": bool(track_references)},
             "points": n_points,
             "frames": len(sc.frames),
             "points_per_frame": n_points / max(len(sc.frames), 1),

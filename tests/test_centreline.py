@@ -75,7 +75,7 @@ def test_empty_input() -> None:
 
 
 def test_smoothing_across_a_trace_with_missing_columns_and_too_short_traces() -> None:
-    frame, laser, u, v = _stripe(0, "A", 0, 60, lambda u: 100 + 0.3 * u + 1e-3 * u**2)
+    _, _, u, v = _stripe(0, "A", 0, 60, lambda u: 100 + 0.3 * u + 1e-3 * u**2)
     keep = ~np.isin(u, [20, 21, 40])  # columns missing (the trace is one trace id here)
     u, v = u[keep], v[keep]
     trace = np.zeros(u.size, dtype=np.int64)

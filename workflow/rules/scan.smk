@@ -67,6 +67,7 @@ rule triangulate_points:
         end_trim_px=config["points"]["end_trim_px"],
         smooth_px=config["points"]["smooth_px"],
         bridge_columns=config["points"]["bridge_columns"],
+        track_references=config["points"]["track_references"],
     log:
         "logs/{capture}/triangulate_points/{scan}.log",
     benchmark:
@@ -82,4 +83,5 @@ rule triangulate_points:
         "--max-frame-gap {params.max_frame_gap} --ambiguity-px {params.ambiguity_px} "
         "--predict {params.predict} --end-trim-px {params.end_trim_px} "
         "--smooth-px {params.smooth_px} --bridge-columns {params.bridge_columns} "
+        "--track-references {params.track_references} "
         "--stats {output.stats} > {log} 2>&1"
