@@ -159,3 +159,96 @@ def test_the_band_holds_all_the_laser_light(paper_model, scan):
     outside = light[mask == 0]
     assert outside.max() < 1.0  # less than one electron anywhere outside the band
     assert mask.mean() < 0.1  # and the band is a small part of the frame
+
+
+def test_fast_normals_are_standard_normal_and_independent():
+    """Box-Muller draws: N(0, 1) moments and tails, no correlation, reproducible, any length."""
+    from scipy import stats
+
+    from crossline.sim.optics import standard_normal_f32
+
+    z = standard_normal_f32(np.random.default_rng(11), 2_000_001)
+    assert z.dtype == np.float32 and z.shape == (2_000_001,) and np.isfinite(z).all()
+    z64 = z.astype(np.float64)
+    assert abs(z64.mean()) < 3e-3 and abs(z64.std() - 1.0) < 3e-3
+    assert abs(stats.skew(z64)) < 0.01 and abs(stats.kurtosis(z64)) < 0.02
+    assert stats.kstest(z64[:500_000], "norm").pvalue > 1e-3
+    # tails: |z| > 3 and > 4 as often as for a true normal (binomial 5 sigma bounds)
+    for k in (3.0, 4.0):
+        p = 2 * stats.norm.sf(k)
+        n = np.count_nonzero(np.abs(z64) > k)
+        assert abs(n - p * z.size) < 5 * np.sqrt(p * z.size)
+    # the cosine and sine of one word (even, odd entries), and neighbours, are independent
+    c, s = z64[0:-1:2], z64[1::2]
+    for x, y in ((c, s), (c**2, s**2), (z64[:-1], z64[1:]), (s[:-1], c[1:])):
+        assert abs(np.corrcoef(x, y)[0, 1]) < 3e-3
+    # same generator state, same draws; into a given buffer too; and a stream: an even
+    # number of draws and then the rest are the draws of one call
+    out = np.empty(7, np.float32)
+    a = standard_normal_f32(np.random.default_rng(3), 7)
+    b = standard_normal_f32(np.random.default_rng(3), 7, out=out)
+    assert b is out and np.array_equal(a, b)
+    rng = np.random.default_rng(3)
+    assert np.array_equal(np.concatenate([standard_normal_f32(rng, 4), standard_normal_f32(rng, 3)]), a)
+
+
+def _digitise_whole(sensor, e, rng, window, noise=True):
+    """The sensor model of ``SensorModel.digitise`` as one pass over the whole image."""
+    from crossline.sim.optics import standard_normal_f32
+
+    x0, y0, w, h = window
+    e = e.astype(np.float32) * sensor.prnu_map[y0 : y0 + h, x0 : x0 + w]
+    e = np.maximum(e, np.float32(0.0)).ravel()
+    fw, rn = sensor.spec.full_well_e, sensor.spec.read_noise_e
+    if noise:
+        low = np.nonzero(e < 30.0)[0]
+        high = np.nonzero(e > fw - 6.0 * np.sqrt(fw))[0]
+        lam, e_high = e[low].astype(np.float64), e[high].astype(np.float64)
+        e = e + np.sqrt(e + np.float32(rn**2)) * standard_normal_f32(rng, e.size)
+        e[low] = (rng.poisson(lam) + rn * rng.standard_normal(lam.size)).astype(np.float32)
+        shot = np.minimum(e_high + np.sqrt(e_high) * rng.standard_normal(e_high.size), fw)
+        e[high] = (shot + rn * rng.standard_normal(e_high.size)).astype(np.float32)
+    else:
+        e = np.minimum(e, np.float32(fw))
+    dn = np.clip(np.rint(e * np.float32(1.0 / sensor.gain) + np.float32(sensor.black)), 0, sensor.top)
+    return dn.reshape(h, w).astype(np.uint16 if sensor.bits == 16 else np.uint8)
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+def test_digitise_in_bands_of_rows_is_the_whole_image_model(bits):
+    """Band by band (cache-sized) gives the same DN, bit for bit, as one whole-image pass."""
+    model = RigModel(PRESETS["paper"], bit_depth=bits)
+    s = model.sensor
+    rng = np.random.default_rng(4)
+    # an odd window whose rows do not divide the band size, with dark (Poisson) pixels,
+    # pixels near the full well and beyond it
+    window = (37, 51, 1201, 157)
+    e = rng.uniform(0.0, 9000.0, (window[3], window[2])).astype(np.float32)
+    e[:40] = rng.uniform(-5.0, 40.0, (40, window[2]))
+    e[-30:] = rng.uniform(9000.0, 14000.0, (30, window[2]))
+    for noise in (True, False):
+        got = s.digitise(e, np.random.default_rng(9), window, noise=noise)
+        want = _digitise_whole(s, e, np.random.default_rng(9), window, noise=noise)
+        assert got.dtype == want.dtype and np.array_equal(got, want)
+
+
+def test_2x2_samples_are_the_full_tensor_product_spline():
+    """The 2 x 2 samples (splined along u first, in bands of rows) equal the spline of the
+    pixel centres' construction, evaluated at the sample positions in the other order."""
+    from crossline.sim.optics import _spline_matrix
+
+    model = RigModel(PRESETS["compact"])
+    window = model.scan_window
+    x0, y0, w, h = window
+    table = RayTable(model.camera, window)
+    uc, vc, xy = table._coarse_grid
+    Mu = _spline_matrix(uc, x0 - 0.25 + 0.5 * np.arange(2 * w))
+    Mv = _spline_matrix(vc, y0 - 0.25 + 0.5 * np.arange(2 * h))
+    full = np.stack([Mv @ xy[..., k] @ Mu.T for k in range(2)], -1)  # (2h, 2w, 2)
+    rng = np.random.default_rng(2)
+    rows, cols = rng.integers(0, h, 5000), rng.integers(0, w, 5000)
+    rows[:4], cols[:4] = [0, 0, h - 1, h - 1], [0, w - 1, 0, w - 1]  # the corners
+    want = np.stack([full[2 * rows + b, 2 * cols + a] for a, b in ((0, 0), (1, 0), (0, 1), (1, 1))], 1)
+    got = table.sample_xy_2x2(rows, cols)
+    assert np.abs(got - want).max() < 1e-14  # the same spline, summed in another order
+    assert np.array_equal(RayTable(model.camera, window).sample_xy_2x2(rows, cols), got)

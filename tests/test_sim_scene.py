@@ -176,3 +176,57 @@ def test_centreline_truth_lies_on_plane_and_surface_and_flags_agree(scan):
     vi = np.rint(rows["v"][vis]).astype(int) - y0
     inside = (vi >= 0) & (vi < mask.shape[0])
     assert mask[vi[inside], rows["u"][vis][inside] - x0].all()
+
+
+def test_face_albedo_of_a_board_view_agrees_with_tracing_the_scene():
+    """Albedo, outline and edge distance on the board's face: the face's plane equation (the
+    fast path of the supersampled edge pixels) against full first-hit tracing and shading."""
+    from crossline.sim.render import _face_albedo
+    from crossline.sim.scenes import board_scene_free
+    from crossline.sim.views import camera_views
+
+    rig = PRESETS["paper"]
+    model = RigModel(rig)
+    T = camera_views(model.camera, rig.board, rig.quick_calibration, 3)[1]
+    scene = board_scene_free(rig.board).transformed(T)
+    rng = np.random.default_rng(8)
+    xy = np.column_stack([rng.uniform(-0.35, 0.35, 200_000), rng.uniform(-0.25, 0.25, 200_000)])
+    d = np.column_stack([xy, np.ones(len(xy))])
+    t, pid, face = scene.trace(np.zeros(3), d)
+    board = np.isfinite(t) & (pid == 0) & (face == 4)
+    assert 0.2 < board.mean() < 0.95
+    P = t[board, None] * d[board]
+    _, alb, edge = scene.shade(P, pid[board], face[board], edges=True)
+    # all rays labelled with the board's face code, as the renderer does inside a cell
+    a, on, e = _face_albedo(scene, np.full(len(xy), 4, np.int32), xy, edges=True)
+    assert np.array_equal(on, board)
+    same = a[board] == alb
+    assert same.mean() > 0.9999 and (~same).sum() < 5  # only rays on an edge, to 1e-12 mm
+    assert np.abs(e[board] - edge).max() < 1e-9
+    # mixed codes (board face and background) go through the masked path
+    codes = np.where(board, 4, 16)
+    a2, on2 = _face_albedo(scene, codes, xy)
+    assert np.array_equal(a2[board], a[board]) and on2[~board].mean() > 0.99
+
+
+def test_differs_at_sees_every_other_neighbour():
+    """8-neighbour test on a bordered code image against a direct loop."""
+    from crossline.sim.render import _differs_at
+
+    rng = np.random.default_rng(5)
+    H, W, ignore = 23, 31, -2
+    code = rng.integers(0, 3, (H, W)).astype(np.int32)
+    code[rng.random((H, W)) < 0.3] = ignore
+    code[5:12, 8:20] = 1  # a flat patch: its inner pixels differ from nothing
+    padded = np.full((H + 2, W + 2), ignore, np.int32)
+    padded[1:-1, 1:-1] = code
+    rows, cols = np.nonzero(code != ignore)
+    got = _differs_at(padded, rows, cols, ignore)
+    want = np.zeros(rows.size, bool)
+    for k, (r, c) in enumerate(zip(rows, cols, strict=True)):
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                rr, cc = r + dy, c + dx
+                if (dy or dx) and 0 <= rr < H and 0 <= cc < W and code[rr, cc] not in (ignore, code[r, c]):
+                    want[k] = True
+    assert np.array_equal(got, want) and want.any() and not want.all()

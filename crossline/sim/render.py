@@ -36,8 +36,15 @@ import cv2
 import numpy as np
 
 from crossline.camera import Camera, distort_normalized
-from crossline.sim.optics import RayTable, SensorModel, exact_xy, pixel_offsets, speckle_field
-from crossline.sim.scene import Curve, Scene, dot3, norm3, rowdot
+from crossline.sim.optics import (
+    RayTable,
+    SensorModel,
+    exact_xy,
+    pixel_offsets,
+    speckle_field,
+    standard_normal_f32,
+)
+from crossline.sim.scene import Curve, Scene, dot3, empty3, norm3, rowdot, take_rows
 from crossline.sim.sheet import BAND_SIGMAS, LaserSheet
 
 __all__ = [
@@ -54,7 +61,7 @@ BAND_SS = 2  # samples per axis in the smooth part of a laser band
 FINE_SS = 4  # samples per axis where the band's integrand is not smooth
 COARSE_STEP = 8  # px between rays of the faint scan-exposure ambient light
 NODE_STEP = 4  # px between the first rays of a board view (edges are then traced per pixel)
-CHUNK = 1 << 18  # rays traced at once (memory)
+CHUNK = 1 << 15  # rays traced at once: the temporaries of a chunk stay in the CPU cache
 ORIGIN = np.zeros(3)
 
 
@@ -91,7 +98,7 @@ class RigModel:
         self.sensor_window = (0, 0, s.width, s.height)
         self.scan_window = tuple(int(v) for v in s.scan_window)
         rng = np.random.default_rng([int(seed), 1001])
-        prnu = rng.standard_normal((s.height, s.width), dtype=np.float32)
+        prnu = standard_normal_f32(rng, s.height * s.width).reshape(s.height, s.width)
         self.prnu = (1.0 + np.float32(s.prnu) * prnu).astype(np.float32)
         self.sensor = SensorModel(s, self.bits, self.prnu)
         self._tables: dict = {}
@@ -152,7 +159,12 @@ class RigModel:
 
 
 def _rays(xy: np.ndarray) -> np.ndarray:
-    return np.concatenate([xy, np.ones((*xy.shape[:-1], 1))], axis=-1)
+    """Camera rays (x, y, 1) of undistorted coordinates (N, 2), column-major (N, 3)."""
+    d = empty3(len(xy))
+    d[:, 0] = xy[:, 0]
+    d[:, 1] = xy[:, 1]
+    d[:, 2] = 1.0
+    return d
 
 
 def _ambient_light(scene: Scene, light: Light, xy: np.ndarray) -> np.ndarray:
@@ -162,9 +174,10 @@ def _ambient_light(scene: Scene, light: Light, xy: np.ndarray) -> np.ndarray:
     hit = np.isfinite(t)
     e = np.zeros(len(d))
     if hit.any():
-        P = t[hit, None] * d[hit]
+        hit = np.flatnonzero(hit)
+        P = t[hit, None] * take_rows(d, hit)
         N, alb, _ = scene.shade(P, pid[hit], face[hit])
-        e[hit] = light.electrons(P, N, alb) * vignetting(xy[hit])
+        e[hit] = light.electrons(P, N, alb) * vignetting(xy.take(hit, axis=0))
     return e
 
 
@@ -185,9 +198,10 @@ def _ambient_samples(scene: Scene, light: Light, xy: np.ndarray, cam: Camera,
     fp_all = np.full(len(d), np.inf)
     alb_all = np.zeros(len(d))
     if hit.any():
-        P = t[hit, None] * d[hit]
+        hit = np.flatnonzero(hit)
+        P = t[hit, None] * take_rows(d, hit)
         N, alb, edge = scene.shade(P, pid[hit], face[hit], edges=True)
-        e[hit] = light.electrons(P, N, alb) * vignetting(xy[hit])
+        e[hit] = light.electrons(P, N, alb) * vignetting(xy.take(hit, axis=0))
         code[hit] = pid[hit].astype(np.int32) * 16 + face[hit]
         dist = norm3(P)
         cos = np.abs(rowdot(N, P)) / dist
@@ -211,18 +225,21 @@ def _ambient_nodes(model: RigModel, window) -> np.ndarray:
 
 
 def _differs_at(code: np.ndarray, rows: np.ndarray, cols: np.ndarray, ignore: int) -> np.ndarray:
-    """Whether any 8-neighbour of the listed pixels holds another code (``ignore`` matches none)."""
-    H, W = code.shape
-    mine = code[rows, cols]
+    """Whether any 8-neighbour of the listed pixels holds another code (``ignore`` matches none).
+
+    ``code`` carries a border of ``ignore`` one pixel wide: ``rows``, ``cols`` index the image
+    inside it (``code[rows + 1, cols + 1]``), so no neighbour falls outside the array.
+    """
+    W = code.shape[1]
+    flat = code.reshape(-1)
+    at = (rows + 1) * W + (cols + 1)
+    mine = flat.take(at)
     out = np.zeros(rows.size, bool)
     for dy in (-1, 0, 1):
         for dx in (-1, 0, 1):
             if dx == 0 and dy == 0:
                 continue
-            r, c = rows + dy, cols + dx
-            ok = (r >= 0) & (r < H) & (c >= 0) & (c < W)
-            other = np.full(rows.size, ignore, code.dtype)
-            other[ok] = code[r[ok], c[ok]]
+            other = flat.take(at + (dy * W + dx))
             out |= (other != mine) & (other != ignore)
     return out
 
@@ -248,8 +265,10 @@ def render_ambient_full(model: RigModel, scene: Scene, light: Light, window) -> 
     w, h = window[2], window[3]
     nodes = _ambient_nodes(model, window)
     nh, nw = nodes.shape[:2]
-    e, code, _, edge, fp, alb = _ambient_samples(scene, light, nodes.reshape(-1, 2), model.camera,
-                                                 with_edges=True)
+    flat = nodes.reshape(-1, 2)
+    parts = [_ambient_samples(scene, light, flat[a : a + CHUNK], model.camera, with_edges=True)
+             for a in range(0, len(flat), CHUNK)]
+    e, code, _, edge, fp, alb = (np.concatenate(x) for x in zip(*parts, strict=True))
     shade = np.where(alb > 0, e / np.where(alb > 0, alb, 1.0), 0.0)
     e = e.reshape(nh, nw).astype(np.float32)
     code = code.reshape(nh, nw)
@@ -278,31 +297,36 @@ def render_ambient_full(model: RigModel, scene: Scene, light: Light, window) -> 
         keep = (r < h) & (c < w)
         return r[keep], c[keep]
 
-    def bilinear(field, r, c):
-        fi, fj = r / NODE_STEP, c / NODE_STEP
-        i0 = np.minimum(r // NODE_STEP, nh - 2)
-        j0 = np.minimum(c // NODE_STEP, nw - 2)
-        ti, tj = fi - i0, fj - j0
-        return ((1 - ti) * ((1 - tj) * field[i0, j0] + tj * field[i0, j0 + 1])
-                + ti * ((1 - tj) * field[i0 + 1, j0] + tj * field[i0 + 1, j0 + 1]))
-
-    # --- cells on one surface with an edge near: albedo by the Lipschitz bound, or supersampled
-    rows, cols = cell_pixels(edgy)
-    if rows.size:
-        sh = bilinear(shade.reshape(nh, nw), rows, cols)
-        ci, cj = rows // NODE_STEP, cols // NODE_STEP
-        best = np.full(rows.size, -np.inf)
-        best_alb = np.zeros(rows.size)
-        fpmax = np.zeros(rows.size)
-        for di in (0, 1):
-            for dj in (0, 1):
-                fpc = fp[ci + di, cj + dj]
-                fpmax = np.maximum(fpmax, fpc)
-                dpx = np.hypot(rows - (ci + di) * NODE_STEP, cols - (cj + dj) * NODE_STEP)
-                b = edge[ci + di, cj + dj] - 1.25 * dpx * fpc
-                better = b > best
-                best = np.where(better, b, best)
-                best_alb = np.where(better, alb[ci + di, cj + dj], best_alb)
+    # --- cells on one surface with an edge near: albedo by the Lipschitz bound, or supersampled.
+    # Corner values are gathered per cell, and every quantity that depends on the pixel only
+    # through its offset (oy, ox) in the cell (its bilinear weights, its distance to each
+    # corner) is a table of NODE_STEP^2 entries: (cells, offsets) arrays, raveled in the
+    # order of cell_pixels.
+    ci, cj = np.nonzero(edgy)
+    if ci.size:
+        oy, ox = np.divmod(np.arange(NODE_STEP * NODE_STEP), NODE_STEP)
+        rows = (ci[:, None] * NODE_STEP + oy[None, :]).ravel()
+        cols = (cj[:, None] * NODE_STEP + ox[None, :]).ravel()
+        keep = (rows < h) & (cols < w)
+        rows, cols = rows[keep], cols[keep]
+        ti, tj = oy / NODE_STEP, ox / NODE_STEP  # pixel (4 i + oy, 4 j + ox) in cell (i, j)
+        corner = {(di, dj): (ci + di, cj + dj) for di in (0, 1) for dj in (0, 1)}
+        sf = shade.reshape(nh, nw)
+        f00, f01, f10, f11 = (sf[corner[k]][:, None] for k in ((0, 0), (0, 1), (1, 0), (1, 1)))
+        sh = ((1 - ti) * ((1 - tj) * f00 + tj * f01) + ti * ((1 - tj) * f10 + tj * f11)).ravel()[keep]
+        best = np.full((ci.size, ti.size), -np.inf)
+        best_alb = np.zeros((ci.size, ti.size))
+        fpmax = np.zeros(ci.size)
+        for (di, dj), at in corner.items():
+            fpc = fp[at]
+            fpmax = np.maximum(fpmax, fpc)
+            dpx = np.hypot(oy - di * NODE_STEP, ox - dj * NODE_STEP)
+            b = edge[at][:, None] - (1.25 * dpx)[None, :] * fpc[:, None]
+            better = b > best
+            best = np.where(better, b, best)
+            best_alb = np.where(better, alb[at][:, None], best_alb)
+        fpmax = np.repeat(fpmax, ti.size)[keep]
+        best, best_alb = best.ravel()[keep], best_alb.ravel()[keep]
         inner = best > 0.75 * 1.25 * fpmax
         img[rows[inner], cols[inner]] = (sh[inner] * best_alb[inner]).astype(np.float32)
         er, ec, esh, efp = rows[~inner], cols[~inner], sh[~inner], fpmax[~inner]
@@ -332,13 +356,13 @@ def render_ambient_full(model: RigModel, scene: Scene, light: Light, window) -> 
     if rows.size:
         r0, c0 = rows.min(), cols.min()
         shape = (rows.max() - r0 + 1, cols.max() - c0 + 1)
-        pcode = np.full(shape, -3, np.int32)
+        pcode = np.full((shape[0] + 2, shape[1] + 2), -3, np.int32)  # with a border
         near = np.zeros(shape, bool)
         for a in range(0, rows.size, CHUNK):
             r, c = rows[a : a + CHUNK], cols[a : a + CHUNK]
             ev, cv_, nr = _ambient_samples(scene, light, table.xy[r, c], model.camera)
             img[r, c] = ev
-            pcode[r - r0, c - c0] = cv_
+            pcode[r - r0 + 1, c - c0 + 1] = cv_
             near[r - r0, c - c0] = nr
         flag = near[rows - r0, cols - c0] | _differs_at(pcode, rows - r0, cols - c0, ignore=-3)
         rows, cols = rows[flag], cols[flag]
@@ -358,40 +382,22 @@ def _face_albedo(scene: Scene, codes: np.ndarray, xy: np.ndarray, edges: bool = 
     must be traced in full) and, with ``edges``, the distance (mm) to the nearest albedo edge
     or face border.
     """
-    out = np.zeros(len(xy))
-    on = np.zeros(len(xy), bool)
-    edist = np.zeros(len(xy)) if edges else None
-    for c in np.unique(codes):
-        m = codes == c
-        prim = scene.prims[int(c) // 16]
-        face = int(c) % 16
-        d = _rays(xy[m])
+    n = len(xy)
+    if n and (codes == codes[0]).all():  # the common case: one face, no masks and copies
+        groups = [(int(codes[0]), None)]
+    else:
+        groups = [(int(c), codes == c) for c in np.unique(codes)]
+    out = np.zeros(n)
+    on = np.zeros(n, bool)
+    edist = np.zeros(n) if edges else None
+    for c, m in groups:
+        prim = scene.prims[c // 16]
+        face = c % 16
+        xm = xy if m is None else xy[m]
         if hasattr(prim, "face_planes"):
-            _, p0, nf = prim.face_planes()[face]
-            t = (p0 @ nf) / dot3(d, nf)
-            P = t[:, None] * d
-            q = prim.local(P)
-            axis = face // 2
-            inside = np.ones(len(P), bool)
-            for j in range(3):
-                if j != axis:
-                    inside &= np.abs(q[:, j]) <= prim.h[j]
-            a = np.full(len(P), prim.albedo_value)
-            tex = prim.textures.get(face)
-            if edges:
-                slack = np.full(len(P), np.inf)
-                for j in range(3):
-                    if j != axis:
-                        slack = np.minimum(slack, prim.h[j] - np.abs(q[:, j]))
-            if tex is not None:
-                a, em = tex(q, edges=edges)
-                if edges:
-                    slack = np.minimum(slack, em)
-            if edges:
-                edist[m] = slack
-            out[m] = a
-            on[m] = inside & (t > 0)
+            a, ok, em = _box_face_albedo(prim, face, xm[:, 0], xm[:, 1], edges)
         else:  # planes and curved surfaces: trace them exactly
+            d = _rays(xm)
             t, pid, fc = scene.trace(ORIGIN, d)
             ok = np.isfinite(t) & (pid == prim.pid) & (fc == face)
             P = t[ok, None] * d[ok]
@@ -399,6 +405,11 @@ def _face_albedo(scene: Scene, codes: np.ndarray, xy: np.ndarray, edges: bool = 
             em = np.zeros(len(d))
             if ok.any():
                 _, a[ok], em[ok] = scene.shade(P, pid[ok], fc[ok], edges=True)
+        if m is None:
+            out, on = a, ok
+            if edges:
+                edist = em
+        else:
             out[m] = a
             on[m] = ok
             if edges:
@@ -406,6 +417,38 @@ def _face_albedo(scene: Scene, codes: np.ndarray, xy: np.ndarray, edges: bool = 
     if edges:
         return out, on, edist
     return out, on
+
+
+def _box_face_albedo(prim, face: int, x: np.ndarray, y: np.ndarray, edges: bool):
+    """Albedo, inside-the-outline flag and edge distance where rays (x, y, 1) meet a box face.
+
+    The arithmetic is ``Box.local`` of the hit points written out per coordinate, only for
+    the coordinates needed (the two in the face, and the texture's).
+    """
+    _, p0, nf = prim.face_planes()[face]
+    t = (p0 @ nf) / (x * nf[0] + y * nf[1] + nf[2])  # the ray (x, y, 1) meets the face plane
+    a0, a1, a2 = t * x - prim.c[0], t * y - prim.c[1], t - prim.c[2]  # hit point - box centre
+    R = prim.R
+    axis = face // 2
+    tex = prim.textures.get(face)
+    need = {j for j in range(3) if j != axis} | ({0, 1} if tex is not None else set())
+    q = {j: a0 * R[0, j] + a1 * R[1, j] + a2 * R[2, j] for j in sorted(need)}
+    inside = None
+    slack = None
+    for j in range(3):
+        if j != axis:
+            aq = np.abs(q[j])
+            inside = aq <= prim.h[j] if inside is None else inside & (aq <= prim.h[j])
+            if edges:
+                sj = prim.h[j] - aq
+                slack = sj if slack is None else np.minimum(slack, sj)
+    if tex is not None:
+        a, em = tex.xy(q[0], q[1], edges)
+        if edges:
+            slack = np.minimum(slack, em)
+    else:
+        a = np.full(len(x), prim.albedo_value)
+    return a, inside & (t > 0), slack
 
 
 def render_ambient_coarse(model: RigModel, scene: Scene, light: Light, window) -> np.ndarray:
@@ -769,7 +812,7 @@ def _laser_samples(model: RigModel, scene: Scene, sheets: list[LaserSheet], xy: 
     hi = np.nonzero(hit)[0]
     if hi.size == 0:
         return out, code, shadow, narrow, edge
-    P = t[hi, None] * d[hi]
+    P = t[hi, None] * take_rows(d, hi)
     near = np.zeros((len(sheets), hi.size), bool)
     fw = []
     for k, sh in enumerate(sheets):
@@ -780,34 +823,32 @@ def _laser_samples(model: RigModel, scene: Scene, sheets: list[LaserSheet], xy: 
     ja = np.nonzero(near.any(0))[0]
     if ja.size == 0:
         return out, code, shadow, narrow, edge
-    Pa = P[ja]
+    Pa = take_rows(P, ja)
     ia = hi[ja]
     N, alb, edist = scene.shade(Pa, pid[ia], face[ia], edges=scene.textured)
     if edist is not None:
         dist = norm3(Pa)
         cos = np.abs(rowdot(N, Pa)) / dist
         edge[ia] = edist < dist / (min(cam.fx, cam.fy) * np.maximum(cos, 1e-3))
-    vig = vignetting(xy[ia])
+    vig = vignetting(xy.take(ia, axis=0))
     for k, sh in enumerate(sheets):
         j = np.nonzero(near[k, ja])[0]
         if j.size == 0:
             continue
         f, w = fw[k][0][ja[j]], fw[k][1][ja[j]]
-        E = sh.irradiance(Pa[j], N[j], f)
-        lit = E > 0  # facing the emitter (cosine > 0) and inside the fan
-        if lit.any():
-            blk = scene.blocked(Pa[j[lit]], sh.e, on=pid[ia[j[lit]]])
-            Ej = E[lit]
-            Ej[blk] = 0.0
-            E[lit] = Ej
+        Pj, Nj = take_rows(Pa, j), take_rows(N, j)
+        E = sh.irradiance(Pj, Nj, f)
+        lit = np.flatnonzero(E > 0)  # facing the emitter (cosine > 0) and inside the fan
+        if lit.size:
+            blk = scene.blocked(take_rows(Pj, lit), sh.e, on=pid[ia[j[lit]]])
+            E[lit[blk]] = 0.0
             shadow[k, ia[j[lit]]] = np.where(blk, 2, 1)
         out[k, ia[j]] = E * alb[j] * vig[j]
         # the stripe's width in the image: sigma = w/2 over |grad f| (mm per px)
-        sig = np.abs(f) < 2.0 * w
-        if sig.any():
-            jj = j[sig]
-            grad = _plane_gradient_px(Pa[jj], N[jj], sh.n, cam)
-            narrow[ia[jj]] |= 0.5 * w[sig] < 1.0 * grad
+        sig = np.flatnonzero(np.abs(f) < 2.0 * w)
+        if sig.size:
+            grad = _plane_gradient_px(take_rows(Pj, sig), take_rows(Nj, sig), sh.n, cam)
+            narrow[ia[j[sig]]] |= 0.5 * w[sig] < 1.0 * grad
     return out, code, shadow, narrow, edge
 
 
@@ -842,8 +883,8 @@ def render_band(model: RigModel, scene: Scene, sheets: list[LaserSheet], window,
         stats["samples"] += m * S
     # pixels next to another surface inside the band (within the band's bounding box)
     r0, r1, c0, c1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
-    cimg = np.full((r1 - r0, c1 - c0), -2, np.int32)
-    cimg[rows - r0, cols - c0] = pcode
+    cimg = np.full((r1 - r0 + 2, c1 - c0 + 2), -2, np.int32)  # with a border
+    cimg[rows - r0 + 1, cols - c0 + 1] = pcode
     refine |= _differs_at(cimg, rows - r0, cols - c0, ignore=-2)
     ri = np.nonzero(refine)[0]
     stats["fine_px"] = int(ri.size)
@@ -861,6 +902,15 @@ def render_band(model: RigModel, scene: Scene, sheets: list[LaserSheet], window,
 
 
 # ----------------------------------------------------------------------------- images
+
+
+def _nonzero(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.nonzero`` of a uint8 image (rows, cols in row-major order), by OpenCV (8x faster)."""
+    pts = cv2.findNonZero(mask)
+    if pts is None:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    pts = pts.reshape(-1, 2).astype(np.int64)
+    return pts[:, 1].copy(), pts[:, 0].copy()
 
 
 def render_image(model: RigModel, scene: Scene, light: Light, window, lasers: tuple[str, ...],
@@ -881,7 +931,7 @@ def render_image(model: RigModel, scene: Scene, light: Light, window, lasers: tu
             m, rows, _ = stripe_truth(model, scene, sh, window, truth=truth)
             mask |= m
             rows_by_laser[sh.name] = rows
-        ys, xs = np.nonzero(mask)
+        ys, xs = _nonzero(mask)
         vals, stats = render_band(model, scene, sheets, window, ys, xs)
         if ys.size:
             pad = 8

@@ -17,7 +17,11 @@ __all__ = ["board_texture"]
 
 
 def board_texture(spec: BoardSpec, offset: np.ndarray):
-    """Texture of local points (board = local + offset) -> (albedo, edge distance or None)."""
+    """Texture of local points (board = local + offset) -> (albedo, edge distance or None).
+
+    The returned function takes local points (N, 3); its attribute ``xy(x, y, edges)`` takes
+    their first two coordinates (all a face texture reads) as separate arrays.
+    """
     b = spec.board
     s = b.spacing
     light, dark = spec.light_albedo, spec.dark_albedo
@@ -29,9 +33,9 @@ def board_texture(spec: BoardSpec, offset: np.ndarray):
 
     if b.pattern == "chessboard":
 
-        def tex(local, edges: bool = True):
-            x = local[:, 0] + off[0]
-            y = local[:, 1] + off[1]
+        def tex_xy(lx, ly, edges: bool = True):
+            x = lx + off[0]
+            y = ly + off[1]
             # squares span [-s, cols*s] x [-s, rows*s]; inner corners at (c s, r s)
             ix = np.floor(x / s)
             iy = np.floor(y / s)
@@ -50,30 +54,42 @@ def board_texture(spec: BoardSpec, offset: np.ndarray):
             e = np.where(inside, e_in, e_out)
             return a, np.minimum(e, border(x, y))
 
-        return tex
+        return _with_local(tex_xy)
 
     R = b.diameter / 2
     in_albedo, out_albedo = (dark, light) if b.circles == "dark" else (light, dark)
 
-    def tex(local, edges: bool = True):
-        x = local[:, 0] + off[0]
-        y = local[:, 1] + off[1]
-        best = np.full(len(x), np.inf)
-        r0 = np.rint(y / s)
-        for dr in (-1, 0, 1) if b.pattern == "asymmetric" else (0,):
-            r = np.clip(r0 + dr, 0, b.rows - 1)
-            if b.pattern == "asymmetric":
+    def tex_xy(lx, ly, edges: bool = True):
+        x = lx + off[0]
+        y = ly + off[1]
+        if b.pattern == "asymmetric":
+            best = np.full(len(x), np.inf)
+            r0 = np.rint(y / s)
+            for dr in (-1, 0, 1):
+                r = np.clip(r0 + dr, 0, b.rows - 1)
                 shift = (r % 2) * s
                 c = np.clip(np.rint((x - shift) / (2 * s)), 0, b.cols - 1)
                 cx = 2 * c * s + shift
-            else:
-                c = np.clip(np.rint(x / s), 0, b.cols - 1)
-                cx = c * s
-            dx, dy = x - cx, y - r * s
-            best = np.minimum(best, dx * dx + dy * dy)
+                dx, dy = x - cx, y - r * s
+                best = np.minimum(best, dx * dx + dy * dy)
+        else:  # the nearest circle centre is the nearest grid node
+            r = np.clip(np.rint(y / s), 0, b.rows - 1)
+            c = np.clip(np.rint(x / s), 0, b.cols - 1)
+            dx, dy = x - c * s, y - r * s
+            best = dx * dx + dy * dy
         a = np.where(best <= R * R, in_albedo, out_albedo)
         if not edges:
             return a, None
         return a, np.minimum(np.abs(np.sqrt(best) - R), border(x, y))
 
+    return _with_local(tex_xy)
+
+
+def _with_local(tex_xy):
+    """The texture as a function of local points (N, 3), with ``.xy(x, y, edges)`` beside it."""
+
+    def tex(local, edges: bool = True):
+        return tex_xy(local[:, 0], local[:, 1], edges)
+
+    tex.xy = tex_xy
     return tex
