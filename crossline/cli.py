@@ -40,30 +40,25 @@ def _bool(text: str) -> bool:
     raise argparse.ArgumentTypeError(f"expected true or false, got {text!r}")
 
 
-def _auto_or_fraction(text: str) -> float | None:
-    """'auto' (None) or a number in (0, 1)."""
-    if text.lower() == "auto":
-        return None
-    try:
-        x = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected 'auto' or a number in (0, 1), got {text!r}") from None
-    if not 0 < x < 1:
-        raise argparse.ArgumentTypeError(f"expected 'auto' or a number in (0, 1), got {text!r}")
-    return x
+def _auto_or(kind: type, ok, what: str):
+    """An argparse type: 'auto' (None) or a ``kind`` value for which ``ok`` holds."""
+
+    def parse(text: str):
+        if text.lower() == "auto":
+            return None
+        try:
+            x = kind(text)
+        except ValueError:
+            x = None
+        if x is None or not ok(x):
+            raise argparse.ArgumentTypeError(f"expected 'auto' or {what}, got {text!r}")
+        return x
+
+    return parse
 
 
-def _auto_or_count(text: str) -> int | None:
-    """'auto' (None) or a positive integer."""
-    if text.lower() == "auto":
-        return None
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected 'auto' or a positive integer, got {text!r}") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"expected 'auto' or a positive integer, got {text!r}")
-    return n
+_auto_or_fraction = _auto_or(float, lambda x: 0 < x < 1, "a number in (0, 1)")
+_auto_or_count = _auto_or(int, lambda n: n >= 1, "a positive integer")
 
 
 def _threads(p: argparse.ArgumentParser) -> None:
