@@ -562,7 +562,7 @@ def _scan(root: Path, name: str, spec: ScanSpec, problems: list[Problem]) -> Sca
         if not m:
             problems.append(Problem(_rel(root, p), "name must be the frame number in 6 digits, "
                                                    "e.g. 000123.png"))
-        elif int(m.group(1)) not in listed:
+        elif rows and int(m.group(1)) not in listed:  # an unreadable table lists no frame
             problems.append(Problem(_rel(root, p), f"has no row in {rel}"))
     if not rows and len(problems) == n_before:
         problems.append(Problem(rel, "has no frames"))

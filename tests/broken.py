@@ -133,6 +133,28 @@ def break_capture(good: Path, dest: Path, fault: str) -> Path:
             _blank_png(png, 0)
     elif fault == "degenerate_handeye":
         _degenerate_handeye(dest)
+    elif fault == "table_faults":
+        # one fault per file, all found by one check: a truncated row, a missing column, an
+        # unknown laser state, a non-unit quaternion, a pose row too few
+        plate = dest / "scans/plate/frames.csv"
+        text = plate.read_text()
+        _rewrite(plate, text[: text.rstrip().rfind(",")])
+        ball = dest / "scans/ball/frames.csv"
+        _rewrite(ball, "\n".join(",".join(r.split(",")[:-1]) for r in ball.read_text().splitlines()) + "\n")
+        _edit_csv(dest / "scans/gauge/frames.csv", 3, "lasers", "C")
+        _edit_csv(dest / "scans/gauge/frames.csv", 5, "qw", "0.5")
+        poses = dest / "calibration/handeye/poses.csv"
+        _rewrite(poses, "\n".join(poses.read_text().splitlines()[:-1]) + "\n")
+    elif fault == "wrong_size":
+        png = dest / "scans/part/frames/000002.png"
+        small = read_image(png)[:-8]
+        png.unlink()
+        write_png(png, small)
+    elif fault == "rig_wrong_type":
+        rig = dest / "rig.yaml"
+        text = rig.read_text()
+        assert "frame_rate: 80.0" in text
+        _rewrite(rig, text.replace("frame_rate: 80.0", "frame_rate: fast"))
     else:
         raise ValueError(f"unknown fault {fault!r}")
     return dest

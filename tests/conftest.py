@@ -13,8 +13,14 @@ import shutil
 from pathlib import Path
 
 import pytest
+from threadpoolctl import threadpool_limits
 
 from crossline.provenance import PACKAGE_ROOT, module_files
+
+# One BLAS thread per test process, as the crossline command runs (crossline.cli): each
+# pytest-xdist worker is already one of the cores, and a second BLAS thread per worker only
+# spins against the other worker (a hand-eye test: 16 s alone, 74 s beside another worker).
+_ONE_BLAS_THREAD = threadpool_limits(limits=1, user_api="blas")
 
 REPO = PACKAGE_ROOT.parent
 CACHE = REPO / ".pytest_cache" / "crossline-captures"

@@ -224,8 +224,8 @@ def test_bad_captures_beside_a_good_one(done_workdir: Path, tmp_path: Path) -> N
     wd = tmp_path / "bad"
     shutil.copytree(done_workdir, wd, symlinks=True)
     good = (done_workdir / "data/raw/q").resolve()
-    faults = ["empty", "corrupt_png", "nan_pose", "misspelt_rig_key", "few_views", "scan_faults",
-              "degenerate_handeye"]
+    faults = ["empty", "corrupt_png", "nan_pose", "misspelt_rig_key", "rig_wrong_type", "table_faults",
+              "wrong_size", "few_views", "scan_faults", "degenerate_handeye"]
     for f in faults:
         break_capture(good, tmp_path / "raw" / f, f)
         (wd / "data/raw" / f).symlink_to(tmp_path / "raw" / f, target_is_directory=True)
@@ -245,10 +245,27 @@ def test_bad_captures_beside_a_good_one(done_workdir: Path, tmp_path: Path) -> N
         "corrupt_png": "scans/plate/frames/000005.png: truncated PNG",
         "nan_pose": "calibration/handeye/poses.csv, line 4: 'y' = nan is not a finite pose value",
         "misspelt_rig_key": "rig.yaml: unknown key 'frame_rat' (misspelt 'frame_rate'?)",
+        "rig_wrong_type": "rig.yaml: 'rig.frame_rate' must be a number, got 'fast'",
+        "wrong_size": "scans/part/frames/000002.png: image is 2658x792 px, expected the scan window "
+                      "2658x800 px",
     }
     for capture, message in expect_check.items():
         assert message in log(capture, "check.log"), capture
         assert not (interim / capture).exists(), capture
+    # one check finds every table fault, one line each, and not their consequences
+    text = log("table_faults", "check.log")
+    csv = "scans/{}/frames.csv, line {}: "
+    for message in [
+        "calibration/handeye/poses.csv: has 7 pose rows for 8 hand-eye images",
+        "calibration/handeye/pose_07.png: has no row in calibration/handeye/poses.csv",
+        csv.format("gauge", 3) + "unknown laser state 'C'; expected one of A, B, AB, off",
+        csv.format("gauge", 5) + "quaternion (qw, qx, qy, qz) has length 1.1",
+        csv.format("plate", 25) + "has 9 fields, expected 10",
+        csv.format("ball", 1) + "missing column(s) ['qz']",
+    ]:
+        assert message in text, message
+    assert "7 problems" in text and "scans/ball/frames/000000.png" not in text
+    assert not (interim / "table_faults").exists()
     # too few views: the camera calibration names every view and why it was not used
     text = log("few_views", "calibrate_camera.log")
     assert "needs at least 6 usable views, got 2 of 22" in text
