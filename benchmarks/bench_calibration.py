@@ -7,7 +7,9 @@ exactly as the workflow does and prints, against ``truth.json``:
 * camera, WITH and WITHOUT the perspective-bias correction: RMS difference (px) between
   projecting points of the working volume with the estimated and with the true model
   (target <= 0.05 px), reprojection RMS, fx fy cx cy errors, and the detected circle centres
-  against the true imaged centroids (true camera, true board pose);
+  against the true imaged centroids (true camera, true board pose), and the noise floor: the
+  same solver on exact projections of this capture's board poses plus noise of the measured
+  centre error (what the views allow, whatever the method);
 * laser planes (with the estimated camera, and with the true camera to isolate the stage):
   angle between estimated and true normal (target <= 0.005 deg) and the largest distance
   between estimated and true plane over the working volume (target <= 0.005 mm);
@@ -44,7 +46,7 @@ sys.path.insert(0, str(ROOT))
 from crossline.atomic import write_json  # noqa: E402
 from crossline.board import Board  # noqa: E402
 from crossline.calibrate.bias import centroid_offsets  # noqa: E402
-from crossline.calibrate.camera import run_calibrate_camera  # noqa: E402
+from crossline.calibrate.camera import calibrate_camera, run_calibrate_camera  # noqa: E402
 from crossline.calibrate.detect import detect_board  # noqa: E402
 from crossline.calibrate.handeye import HandEye, point_uncertainty, run_calibrate_handeye  # noqa: E402
 from crossline.calibrate.lasers import run_calibrate_lasers  # noqa: E402
@@ -60,6 +62,7 @@ from crossline.laser import LaserPlanes  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 DEPTHS = {"paper": (115.0, 185.0), "compact": (80.0, 125.0)}
+NOISE_TRIALS = 24  # noise-only camera calibrations per capture
 TARGETS = {"camera_px": 0.05, "laser_angle_deg": 0.005, "laser_dist_mm": 0.005, "handeye_mm": 0.01}
 
 
@@ -176,6 +179,37 @@ def handeye_metrics(he: HandEye, truth: dict, true_cam: Camera, depths) -> dict:
 # ----------------------------------------------------------------------------- runs
 
 
+def board_poses(truth: dict) -> list[np.ndarray]:
+    """True T_cam_board of every lasers-off board view the camera stage calibrates on."""
+    cal = truth["calibration"]
+    return [np.array(v["T_cam_board"]) for k in ("camera", "laser_A", "laser_B", "handeye")
+            for _, v in sorted(cal.get(k, {}).items())]
+
+
+def camera_noise_floor(truth: dict, true_cam: Camera, board: Board, centre_rms_px: float,
+                       depths, trials: int = NOISE_TRIALS, seed: int = 0) -> dict:
+    """The camera figure that the capture's own board poses allow, noise alone.
+
+    The stage's solver (Zhang + bundle adjustment) on exact projections of every board view
+    of this capture plus Gaussian noise of the measured centre error (per axis: RMS / sqrt 2):
+    no bias, no detection, no model error. A measured figure near this one is limited by the
+    views (their number and tilts), not by the method.
+    """
+    rng = np.random.default_rng(seed)
+    P = board.object_points()
+    exact = np.array([true_cam.project(P @ T[:3, :3].T + T[:3, 3]) for T in board_poses(truth)])
+    sigma = centre_rms_px / np.sqrt(2.0)
+    proj = []
+    for _ in range(trials):
+        fit = calibrate_camera(exact + rng.normal(0.0, sigma, exact.shape), board, true_cam.image_size,
+                               bias_correction=False)
+        proj.append(camera_metrics(fit.camera, true_cam, depths)["projection_rms_px"])
+    proj = np.array(proj)
+    return {"views": len(exact), "sigma_px_per_axis": sigma, "trials": trials,
+            "projection_rms_px": proj.tolist(), "median_px": float(np.median(proj)),
+            "p90_px": float(np.percentile(proj, 90))}
+
+
 def evaluate(capture: Path, work: Path, threads: int) -> dict:
     """Run the stages on one capture and score them against its truth."""
     truth = json.loads((capture / "truth.json").read_text())
@@ -200,6 +234,9 @@ def evaluate(capture: Path, work: Path, threads: int) -> dict:
         cams[bc] = run_calibrate_camera(capture, path, bias_correction=bc, threads=threads)
         res["timings_s"][f"camera_{key}"] = time.perf_counter() - t
         res.setdefault("camera", {})[key] = camera_metrics(cams[bc], true_cam, depths)
+    t = time.perf_counter()
+    res["camera_noise_floor"] = camera_noise_floor(truth, true_cam, board, res["centres"]["rms_px"], depths)
+    res["timings_s"]["camera_noise_floor"] = time.perf_counter() - t
     true_json = work / "camera_true.json"
     true_cam.save(true_json)
     for label, cj in (("estimated_camera", work / "camera_with_bias_correction.json"),
@@ -230,6 +267,10 @@ def format_result(r: dict) -> str:
                  f"{c['reprojection_rms_px']:.4f}   {c['fx_err_px']:+.4f}  {c['fy_err_px']:+.4f}  "
                  f"{c['cx_err_px']:+.4f}  {c['cy_err_px']:+.4f}   "
                  f"[{ok(c['projection_rms_px'], TARGETS['camera_px'])} <= {TARGETS['camera_px']}]")
+    nf = r["camera_noise_floor"]
+    L.append(f"   noise floor: the stage's solver on exact projections of this capture's {nf['views']} "
+             f"board poses + {nf['sigma_px_per_axis']:.4f} px noise per axis, {nf['trials']} trials: "
+             f"proj RMS median {nf['median_px']:.4f} px, p90 {nf['p90_px']:.4f} px")
     L.append("   laser planes                angle deg   max dist mm   d err mm    fit RMS mm  points")
     for label, lp in r["lasers"].items():
         for laser, m in lp.items():
