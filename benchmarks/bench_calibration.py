@@ -92,6 +92,8 @@ def camera_metrics(est: Camera, true: Camera, depths) -> dict:
         "bias_mean_shift_px": est.extra.get("bias_correction", {}).get("mean_shift_px"),
         "bias_iterations": est.extra.get("bias_correction", {}).get("iterations"),
         "views_used": est.extra.get("n_views_used"),
+        "predicted_projection_rms_px": (est.extra.get("uncertainty") or {}).get("projection_rms_px",
+                                                                                 {}).get("sensor"),
     }
 
 
@@ -267,6 +269,10 @@ def format_result(r: dict) -> str:
                  f"{c['reprojection_rms_px']:.4f}   {c['fx_err_px']:+.4f}  {c['fy_err_px']:+.4f}  "
                  f"{c['cx_err_px']:+.4f}  {c['cy_err_px']:+.4f}   "
                  f"[{ok(c['projection_rms_px'], TARGETS['camera_px'])} <= {TARGETS['camera_px']}]")
+    for key, c in r["camera"].items():
+        if c.get("predicted_projection_rms_px") is not None:
+            L.append(f"   {key}: predicted by the fit's own covariance (1 sigma RMS over the sensor): "
+                     f"{c['predicted_projection_rms_px']:.4f} px")
     nf = r["camera_noise_floor"]
     L.append(f"   noise floor: the stage's solver on exact projections of this capture's {nf['views']} "
              f"board poses + {nf['sigma_px_per_axis']:.4f} px noise per axis, {nf['trials']} trials: "

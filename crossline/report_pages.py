@@ -409,17 +409,30 @@ def page_camera(m: dict[str, Any], plots: dict[str, Any]) -> Figure:
         p.text("No camera.json: the camera calibration is missing.", color=COLOURS["N/A"])
         return p.fig
     d = c["dist"]
-    rows = [["fx", fmt(c["fx_px"], "px", 3)], ["fy", fmt(c["fy_px"], "px", 3)],
-            ["cx", fmt(c["cx_px"], "px", 3)], ["cy", fmt(c["cy_px"], "px", 3)]]
-    rows2 = [["k1", fmt(d[0], "", 6)], ["k2", fmt(d[1], "", 6)], ["p1", fmt(d[2], "", 7)],
-             ["p2", fmt(d[3], "", 7)], ["k3", fmt(d[4], "", 6)]]
+    unc = c.get("uncertainty") or {}
+    std = unc.get("std") or {}
+
+    def sd(name: str, unit: str, digits: int) -> str:
+        return fmt(std[name], unit, digits) if name in std else "–"
+
+    rows = [[n, fmt(c[f"{n}_px"], "px", 3), sd(n, "px", 4)] for n in ("fx", "fy", "cx", "cy")]
+    rows2 = [[n, fmt(d[i], "", dg), sd(n, "", dg)]
+             for i, (n, dg) in enumerate((("k1", 6), ("k2", 6), ("p1", 7), ("p2", 7), ("k3", 6)))]
     y0 = p.y
-    p.table(["Intrinsic", "Value"], rows, [LEFT, LEFT + 0.12, LEFT + 0.3], aligns=["left", "right"])
+    p.table(["Intrinsic", "Value", "1σ"], rows, [LEFT, LEFT + 0.08, LEFT + 0.22, LEFT + 0.32],
+            aligns=["left", "right", "right"])
     y1 = p.y
     p.y = y0
-    p.table(["Distortion", "Value"], rows2, [LEFT + 0.34, LEFT + 0.46, LEFT + 0.62],
-            aligns=["left", "right"])
+    p.table(["Distortion", "Value", "1σ"], rows2, [LEFT + 0.38, LEFT + 0.46, LEFT + 0.62, LEFT + 0.76],
+            aligns=["left", "right", "right"])
     p.y = min(p.y, y1)
+    proj = unc.get("projection_rms_px") or {}
+    if proj:
+        p.text("Predicted from these views (1σ, from the residuals and the fit's Jacobian): a point "
+               f"is projected {fmt(proj.get('sensor'), 'px', 4)} RMS from where the true camera "
+               f"would put it over the sensor, {fmt(proj.get('scan_window'), 'px', 4)} over the "
+               f"scan window; residual σ {fmt(unc.get('sigma_px'), 'px', 4)} per coordinate. "
+               "More views, or steeper tilts, lower it.", size=8.2)
     size = c.get("image_size")
     bc = c.get("bias_correction")
     if isinstance(bc, dict):
@@ -879,6 +892,10 @@ def page_validation(m: dict[str, Any], plots: dict[str, Any]) -> list[Figure]:
     if c:
         rows.append(["camera K, dist", "projection difference RMS / max",
                      f"{fmt(c['rms_px'], 'px')} / {fmt(c['max_px'], 'px')}"])
+        pred = ((m["calibration"].get("camera") or {}).get("uncertainty") or {}).get("projection_rms_px")
+        if pred and pred.get("scan_window") is not None:
+            rows.append(["", "predicted by the calibration (1σ RMS, scan window)",
+                         fmt(pred["scan_window"], "px")])
         rows.append(["", "fx, fy, cx, cy − true",
                      ", ".join(f"{c[k]:+.3f}" for k in ("dfx_px", "dfy_px", "dcx_px", "dcy_px"))
                      + " px"])

@@ -156,3 +156,31 @@ def test_too_few_usable_views_names_every_view() -> None:
         assert f"  - calibration/camera/view_{k:02d}.png: board not found" in msg
     for k in (0, 2, 4, 6):
         assert f"  - calibration/camera/view_{k:02d}.png: used" in msg
+
+
+def test_predicted_projection_error_matches_cramer_rao_and_the_scatter() -> None:
+    """The fit's own covariance (block normal matrix at the estimate) predicts the projection
+    error: as the dense Cramér–Rao bound computed here at the truth, and as the RMS of the
+    actual errors over noisy repeats."""
+    from crossline.calibrate.camera import PARAMETERS, grid_pixels, projection_uncertainty
+
+    sigma = 0.05
+    rng = np.random.default_rng(12)
+    sensor = grid_pixels((0, 0, *PAPER.image_size), 15)
+    predicted, actual, cx, cx_std = [], [], [], []
+    for _ in range(40):
+        fit = calibrate_camera(CENTRES + rng.normal(0.0, sigma, CENTRES.shape), BOARD, PAPER.image_size,
+                               bias_correction=False)
+        assert abs(fit.sigma_px - sigma) < 0.05 * sigma  # residual sigma, degrees of freedom counted
+        C = fit.covariance
+        assert C.shape == (9, 9) and np.allclose(C, C.T) and np.all(np.linalg.eigvalsh(C) > 0)
+        predicted.append(projection_uncertainty(fit.camera, C, sensor))
+        actual.append(_projection_rms(fit.camera))  # over the sensor (the volume's directions)
+        cx.append(fit.camera.cx)
+        cx_std.append(np.sqrt(C[PARAMETERS.index("cx"), PARAMETERS.index("cx")]))
+    crb = _crb_projection_rms(sigma)
+    assert abs(np.median(predicted) - crb) < 0.05 * crb, (np.median(predicted), crb)
+    # 40 repeats: the RMS of the actual errors within 25 % of the prediction (chi-square scatter)
+    rms_actual = float(np.sqrt(np.mean(np.square(actual))))
+    assert abs(rms_actual - crb) < 0.25 * crb, (rms_actual, crb)
+    assert abs(np.std(cx) - np.median(cx_std)) < 0.3 * np.median(cx_std)

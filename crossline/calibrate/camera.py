@@ -35,12 +35,16 @@ from crossline.geometry import make_transform, matrix_to_rotvec, rotvec_to_matri
 
 __all__ = [
     "OUTLIER_FLOOR_PX",
+    "PARAMETERS",
     "VIEW_SETS",
     "CameraFit",
     "bundle_adjust",
     "calibrate_camera",
     "detect_views",
+    "grid_pixels",
+    "projection_uncertainty",
     "run_calibrate_camera",
+    "uncertainty_summary",
 ]
 
 log = logging.getLogger(__name__)
@@ -59,6 +63,21 @@ class CameraFit:
     offsets: np.ndarray  # (V, N, 2) predicted perspective bias removed from the measurements
     residuals: np.ndarray  # (V, N, 2) corrected measurements minus projections
     bias_history: list[dict[str, float]] = field(default_factory=list)
+    normal: np.ndarray | None = None  # JᵀJ of the last bundle adjustment (9 + 6 V parameters)
+
+    @property
+    def sigma_px(self) -> float:
+        """Residual standard deviation per image coordinate (px), degrees of freedom counted."""
+        V, N = self.residuals.shape[:2]
+        dof = 2 * V * N - (9 + 6 * V)
+        return float(np.sqrt(np.sum(self.residuals**2) / max(dof, 1)))
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """Covariance (9, 9) of fx, fy, cx, cy, k1, k2, p1, p2, k3: sigma² (JᵀJ)⁻¹, poses marginalised."""
+        if self.normal is None:
+            raise ValueError("no normal matrix: the fit did not come from bundle_adjust")
+        return self.sigma_px**2 * np.linalg.inv(self.normal)[:9, :9]
 
     @property
     def view_rms(self) -> np.ndarray:
@@ -91,7 +110,8 @@ def bundle_adjust(
 ) -> tuple[Camera, np.ndarray, np.ndarray]:
     """Refine intrinsics, distortion and every view's pose (float64 LM) on points (V, N, 2).
 
-    Returns the camera, the poses (V, 4, 4) and the residuals (V, N, 2).
+    Returns the camera, the poses (V, 4, 4), the residuals (V, N, 2) and JᵀJ at the solution
+    (parameters fx, fy, cx, cy, the 5 distortion coefficients, then 6 per view).
     """
     P = board.object_points()
     V, N = points.shape[:2]
@@ -144,7 +164,7 @@ def bundle_adjust(
     cam = Camera(np.array([[x[0], 0, x[2]], [0, x[1], x[3]], [0, 0, 1.0]]), x[4:9], camera.image_size)
     ext = x[9:].reshape(V, 6)
     T = make_transform(rotvec_to_matrix(ext[:, :3]), ext[:, 3:])
-    return cam, T, res.fun.reshape(V, N, 2)
+    return cam, T, res.fun.reshape(V, N, 2), res.normal
 
 
 def _zhang(board: Board, points: np.ndarray, image_size) -> tuple[Camera, np.ndarray]:
@@ -171,7 +191,7 @@ def calibrate_camera(
     if len(pts) < 3:
         raise CalibrationError(f"camera calibration needs at least 3 views, got {len(pts)}")
     cam, T = _zhang(board, pts, image_size)
-    cam, T, res = bundle_adjust(board, pts, cam, T)
+    cam, T, res, A = bundle_adjust(board, pts, cam, T)
     offsets = np.zeros_like(pts)
     history = [{"iteration": 0, "rms_px": float(np.sqrt(np.mean(np.sum(res**2, -1)))),
                 "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "change_px": 0.0}]
@@ -182,13 +202,58 @@ def calibrate_camera(
             ])
             change = float(np.abs(new - offsets).max())
             offsets = new
-            cam, T, res = bundle_adjust(board, pts - offsets, cam, T)
+            cam, T, res, A = bundle_adjust(board, pts - offsets, cam, T)
             history.append({"iteration": it, "rms_px": float(np.sqrt(np.mean(np.sum(res**2, -1)))),
                             "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
                             "change_px": change})
             if change < bias_tol_px:
                 break
-    return CameraFit(cam, T, offsets, res, history)
+    return CameraFit(cam, T, offsets, res, history, A)
+
+
+PARAMETERS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+
+
+def grid_pixels(window: tuple[int, int, int, int], n: int = 21) -> np.ndarray:
+    """An n x n grid of pixels (M, 2) spanning a window (x, y, width, height), edges included."""
+    x, y, w, h = window
+    u, v = np.meshgrid(np.linspace(x, x + w - 1, n), np.linspace(y, y + h - 1, n))
+    return np.column_stack([u.ravel(), v.ravel()])
+
+
+def projection_uncertainty(camera: Camera, covariance: np.ndarray, pixels: np.ndarray) -> float:
+    """Predicted RMS (px, 1 sigma) of the projection error at ``pixels`` from the covariance
+    (9, 9) of the intrinsics and distortion: how far points seen there are projected (and
+    their rays cast) from where the true camera would put them."""
+    xy = camera.undistort(np.asarray(pixels, dtype=np.float64))
+    Q = np.column_stack([xy, np.ones(len(xy))])
+    x0 = np.r_[camera.fx, camera.fy, camera.cx, camera.cy, camera.dist]
+    J = np.empty((len(Q), 2, 9))
+    for k in range(9):
+        h = 1e-5 * max(1.0, abs(x0[k]))
+        proj = []
+        for sgn in (1.0, -1.0):
+            p = x0.copy()
+            p[k] += sgn * h
+            K = np.array([[p[0], 0.0, p[2]], [0.0, p[1], p[3]], [0.0, 0.0, 1.0]])
+            proj.append(Camera(K, p[4:9], camera.image_size).project(Q))
+        J[:, :, k] = (proj[0] - proj[1]) / (2 * h)
+    var = np.einsum("nik,kl,nil->n", J, covariance, J)
+    return float(np.sqrt(np.mean(var)))
+
+
+def uncertainty_summary(fit: CameraFit, windows: dict[str, tuple[int, int, int, int]]) -> dict[str, Any]:
+    """The fit's standard deviations and its predicted projection error over each window."""
+    C = fit.covariance
+    return {
+        "sigma_px": fit.sigma_px,
+        "std": dict(zip(PARAMETERS, np.sqrt(np.diag(C)).tolist(), strict=True)),
+        "covariance": C,
+        "projection_rms_px": {name: projection_uncertainty(fit.camera, C, grid_pixels(win))
+                              for name, win in windows.items()},
+        "note": "1 sigma, from the residuals and the Jacobian of the final bundle adjustment; "
+                "projection error RMS over a 21 x 21 grid of each window",
+    }
 
 
 # ----------------------------------------------------------------------------- stage
@@ -323,9 +388,16 @@ def run_calibrate_camera(
         },
         "board": board.to_dict(),
         "view_set": views,
+        "uncertainty": uncertainty_summary(fit, {"sensor": (0, 0, *size), "scan_window": (
+            cap.rig.scan_window.x, cap.rig.scan_window.y, cap.rig.scan_window.width,
+            cap.rig.scan_window.height)}),
     }
     cam = Camera(cam.K, cam.dist, cam.image_size, extra)
     cam.save(out)
     log.info("camera: %d of %d views used, RMS %.4f px, fx %.3f fy %.3f cx %.3f cy %.3f",
              len(used), len(names), fit.rms_px, cam.fx, cam.fy, cam.cx, cam.cy)
+    u = extra["uncertainty"]
+    log.info("camera: predicted projection error (1 sigma RMS) %.4f px over the sensor, %.4f px over "
+             "the scan window; std cx %.4f px, cy %.4f px", u["projection_rms_px"]["sensor"],
+             u["projection_rms_px"]["scan_window"], u["std"]["cx"], u["std"]["cy"])
     return cam
