@@ -685,6 +685,11 @@ def _calibration(inputs: dict[str, dict | None]) -> dict[str, Any]:
             h["pairs"] = {k: v for k, v in pairs.items()
                           if isinstance(v, int | float) and not isinstance(v, bool)}
         h["rotvec_deg"] = np.degrees(matrix_to_rotvec(X[:3, :3])).tolist()
+        chosen = (he.get("methods") or {}).get(he.get("method")) or {}
+        for key in ("uncertainty", "noise_model"):  # their figures, not the covariance matrix
+            if isinstance(chosen.get(key), dict):
+                h[key] = {k: v for k, v in chosen[key].items()
+                          if isinstance(v, int | float) and not isinstance(v, bool)}
         cal["handeye"] = h
     return cal
 

@@ -301,8 +301,11 @@ def page_summary(m: dict[str, Any]) -> Figure:
         used = c.get("views_used")
         total = len(c.get("views", []))
         views = f", {used} of {total} views used" if total else ""
+        proj = (c.get("uncertainty") or {}).get("projection_rms_px") or {}
+        pred = (f"; predicted projection error {fmt(proj['scan_window'], 'px', 4)} (1σ, scan window)"
+                if proj.get("scan_window") is not None else "")
         p.text(f"Camera: fx {fmt(c['fx_px'], 'px', 2)}, fy {fmt(c['fy_px'], 'px', 2)}, "
-               f"reprojection RMS {fmt(c.get('rms_px'), 'px', 4)}{views}")
+               f"reprojection RMS {fmt(c.get('rms_px'), 'px', 4)}{views}{pred}")
     else:
         p.text("Camera: no camera.json", color=COLOURS["N/A"])
     la = cal.get("lasers")
@@ -313,8 +316,12 @@ def page_summary(m: dict[str, Any]) -> Figure:
         p.text("Laser planes: no lasers.json", color=COLOURS["N/A"])
     he = cal.get("handeye")
     if he:
+        u = he.get("uncertainty") or {}
+        pred = (f"; predicted point error {fmt(u['point_mm_1sigma_at_board_distance'], 'mm', 4)} "
+                f"(1σ at {u.get('board_distance_mm', 0):.0f} mm)"
+                if "point_mm_1sigma_at_board_distance" in u else "")
         p.text(f"Hand-eye: X = T_tool_cam by {he.get('method') or 'unknown method'}; "
-               f"{len(he.get('methods', {}))} method(s) compared")
+               f"{len(he.get('methods', {}))} method(s) compared{pred}")
     else:
         p.text("Hand-eye: no handeye.json", color=COLOURS["N/A"])
     p.gap(0.15)
@@ -679,6 +686,18 @@ def page_handeye(m: dict[str, Any]) -> Figure:
             p.text(f"Motion pairs: {pairs.get('used', '–')} of {pairs.get('total', '–')} used "
                    f"({pairs.get('rejected', 0)} rejected: arm and camera rotation angles differ by "
                    f"more than {pairs.get('angle_tolerance_deg', '–')}°).", size=7.5)
+        u, nm = he.get("uncertainty") or {}, he.get("noise_model") or {}
+        if u:
+            p.text(f"Uncertainty of the chosen X (1σ, from its covariance): rotation "
+                   f"{fmt(u.get('rotation_deg_1sigma'), '°', 5)}, translation "
+                   f"{fmt(u.get('translation_mm_1sigma'), 'mm', 4)}; a point "
+                   f"{u.get('board_distance_mm', 0):.0f} mm in front of the camera moves "
+                   f"{fmt(u.get('point_mm_1sigma_at_board_distance'), 'mm', 4)}.", size=7.5)
+        if nm:
+            p.text(f"Noise levels estimated from the data (variance components): image "
+                   f"{fmt(nm.get('image_sigma_px'), 'px', 4)}, arm {fmt(nm.get('arm_sigma_mm'), 'mm', 4)} "
+                   f"and {fmt(1e6 * nm['arm_sigma_rad'] if 'arm_sigma_rad' in nm else None, 'µrad', 1)} per "
+                   "axis.", size=7.5)
         order = ["rotation_residual_deg_rms", "translation_residual_mm_rms",
                  "board_consistency_mm", "reprojection_rms_px"]
         found = {k for e in methods.values() for k in e
