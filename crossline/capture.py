@@ -617,6 +617,9 @@ def open_capture(root: str | Path) -> Capture:
 # ----------------------------------------------------------------------------- check
 
 
+MAX_PERIOD = 64  # longest laser pattern looked for (frames); a period must repeat at least twice
+
+
 def laser_pattern(states: np.ndarray | list[str]) -> dict[str, Any]:
     """The periodic laser pattern of a scan and where the sequence breaks it.
 
@@ -626,7 +629,7 @@ def laser_pattern(states: np.ndarray | list[str]) -> dict[str, Any]:
     s = list(states)
     n = len(s)
     best: dict[str, Any] = {"period": s[:1], "matching": 0, "breaks": list(range(n))}
-    for p in range(1, min(8, n) + 1):
+    for p in range(1, max(1, min(MAX_PERIOD, n // 2)) + 1):
         # the most common state at each phase defines the period
         period = [Counter(s[i::p]).most_common(1)[0][0] for i in range(p)]
         breaks = [i for i in range(n) if s[i] != period[i % p]]

@@ -40,25 +40,29 @@ def _bool(text: str) -> bool:
     raise argparse.ArgumentTypeError(f"expected true or false, got {text!r}")
 
 
-def _auto_or(kind: type, ok, what: str):
-    """An argparse type: 'auto' (None) or a ``kind`` value for which ``ok`` holds."""
+def _checked(kind: type, ok, what: str, *, auto: bool = False):
+    """An argparse type: a ``kind`` value for which ``ok`` holds, or with ``auto`` also 'auto' (None)."""
+    expected = f"'auto' or {what}" if auto else what
 
     def parse(text: str):
-        if text.lower() == "auto":
+        if auto and text.lower() == "auto":
             return None
         try:
             x = kind(text)
         except ValueError:
             x = None
         if x is None or not ok(x):
-            raise argparse.ArgumentTypeError(f"expected 'auto' or {what}, got {text!r}")
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
         return x
 
     return parse
 
 
-_auto_or_fraction = _auto_or(float, lambda x: 0 < x < 1, "a number in (0, 1)")
-_auto_or_count = _auto_or(int, lambda n: n >= 1, "a positive integer")
+_auto_or_fraction = _checked(float, lambda x: 0 < x < 1, "a number in (0, 1)", auto=True)
+_auto_or_count = _checked(int, lambda n: n >= 1, "a positive integer", auto=True)
+_auto_or_positive = _checked(float, lambda x: x > 0, "a number > 0", auto=True)
+_positive = _checked(float, lambda x: x > 0, "a number > 0")
+_unit_interval = _checked(float, lambda x: 0 <= x <= 1, "a number in [0, 1]")
 
 
 def _threads(p: argparse.ArgumentParser) -> None:
@@ -387,17 +391,6 @@ def _triangulate(p: argparse.ArgumentParser) -> None:
     """,
 )
 def _fuse(p: argparse.ArgumentParser) -> None:
-    def auto_or_positive(text: str) -> float | None:
-        if text.lower() in ("auto", "none", "null"):
-            return None
-        try:
-            x = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected 'auto' or a number > 0, got {text!r}") from None
-        if not x > 0:
-            raise argparse.ArgumentTypeError(f"expected 'auto' or a number > 0, got {text!r}")
-        return x
-
     p.add_argument("points", type=Path, help="points parquet")
     p.add_argument("--out", type=Path, required=True, help="PLY to write")
     p.add_argument("--stats", type=Path, help="JSON with the counts before and after")
@@ -414,11 +407,12 @@ def _fuse(p: argparse.ArgumentParser) -> None:
                         "(without it the frames' pose errors are taken as independent)")
     p.add_argument("--arm-precision-mm", type=float, default=0.02,
                    help="arm's stated precision, read as 2 sigma of the 3-D position error (mm)")
-    p.add_argument("--arm-precision-rad", type=auto_or_positive, default=None,
+    p.add_argument("--arm-precision-rad", type=_auto_or_positive, default=None,
                    help="the same for the orientation (rad); auto = the mm figure over 300 mm")
-    p.add_argument("--arm-smooth-fraction", type=float, default=0.9,
-                   help="share of the arm's error sigma that is correlated in time (0..1)")
-    p.add_argument("--arm-corr-time-s", type=float, default=0.3,
+    p.add_argument("--arm-smooth-fraction", type=_unit_interval, default=0.9,
+                   help="share of the arm's error that drifts smoothly (0..1): the drift's sigma is "
+                        "this share of the whole, the white part's sqrt(1 - share^2)")
+    p.add_argument("--arm-corr-time-s", type=_positive, default=0.3,
                    help="correlation time of that part of the arm's error (s)")
     _threads(p)
 

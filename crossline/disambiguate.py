@@ -89,7 +89,7 @@ class _Ref:
 def _sorted_ref(frame: int, u: np.ndarray, v: np.ndarray, bridge: int = 0) -> _Ref:
     o = np.lexsort((v, u))
     u, v = u[o], v[o]
-    if bridge > 1:
+    if bridge >= 1:
         u, v = bridge_gaps(u, v, bridge)
     return _Ref(frame, u, v)
 
@@ -102,14 +102,14 @@ def bridge_gaps(
 
     A faint or speckled stripe falls below the threshold in a column here and there; without
     a reference in that column an AB centre there could not be labelled. A centre with no
-    successor in the next column is joined to the first centre up to ``max_gap`` columns on
-    whose step per column continues its own (within ``kink_px`` rows per column) or, with no
-    step known, is at most ``step_px`` per column; a jump (an edge, a step, another surface)
-    is not bridged. Returns (u, v) sorted by (u, v).
+    successor in the next column is joined to the first centre beyond a gap of up to
+    ``max_gap`` missing columns whose step per column continues its own (within ``kink_px``
+    rows per column) or, with no step known, is at most ``step_px`` per column; a jump (an
+    edge, a step, another surface) is not bridged. Returns (u, v) sorted by (u, v).
     """
     u = np.asarray(u, dtype=np.float64)
     v = np.asarray(v, dtype=np.float64)
-    if u.size < 2 or max_gap < 2:
+    if u.size < 2 or max_gap < 1:
         return u, v
     fu, fv = _bridge_nb(u, v, int(max_gap), float(step_px), float(kink_px))
     if fu.size == 0:
@@ -139,8 +139,8 @@ def _nearest_in(u, v, col, target):  # pragma: no cover - compiled
 def _bridge_nb(u, v, max_gap, step_px, kink_px):  # pragma: no cover - compiled
     """The filled columns of :func:`bridge_gaps` (u, v of the new centres only)."""
     n = u.size
-    fu = np.empty(n * (max_gap - 1))
-    fv = np.empty(n * (max_gap - 1))
+    fu = np.empty(n * max_gap)
+    fv = np.empty(n * max_gap)
     k = 0
     near = step_px + kink_px
     for i in range(n):
@@ -150,7 +150,7 @@ def _bridge_nb(u, v, max_gap, step_px, kink_px):  # pragma: no cover - compiled
         jp, d_prev = _nearest_in(u, v, u[i] - 1.0, v[i])
         known = d_prev <= near
         step = v[i] - v[jp] if known else 0.0
-        for g in range(2, max_gap + 1):
+        for g in range(2, max_gap + 2):  # the next centre g columns on: g - 1 missing
             j, d = _nearest_in(u, v, u[i] + g, v[i] + g * step)
             if d <= (kink_px if known else step_px) * g:
                 for m in range(1, g):

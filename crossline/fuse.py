@@ -478,8 +478,9 @@ def run_fuse(
 
     ``refine_poses`` refines every frame's arm pose from the scan first, with the arm's
     precision as prior: ``arm_precision_mm`` (and ``arm_precision_rad``, default the mm
-    figure over 300 mm) read as 2 sigma of the 3-D error, of which ``arm_smooth_fraction``
-    of each sigma is correlated in time over ``arm_corr_time_s``; ``frames`` (the scan's
+    figure over 300 mm) read as 2 sigma of the 3-D error, split into a drift correlated in
+    time over ``arm_corr_time_s`` (sigma ``arm_smooth_fraction`` of the whole) and a white
+    part (the rest of the variance); ``frames`` (the scan's
     frames.csv) gives the frame times and the flange positions.
     """
     import pandas as pd

@@ -885,7 +885,8 @@ def label_errors(
     """Wrong A/B labels of stripe points (px) against the true centre lines of their frames.
 
     A point is checked where one true line of its frame passes within ``near_px`` of it in its
-    column (``round(u)``) and the other does not; its true laser is that line's. Points where
+    column (``round(u)``) and the other does not; its true laser is that line's (a line that
+    crosses the column more than once counts with its row nearest the point). Points where
     the two true lines are within ``crossing_px`` of each other are the crossing band, counted
     apart.
     """
@@ -908,9 +909,18 @@ def label_errors(
         key = tf[m] * span + tu[m]
         order = np.argsort(key, kind="stable")
         key, rows = key[order], tv[m][order]
-        j = np.minimum(np.searchsorted(key, query), key.size - 1)
-        hit = key[j] == query
-        true_row[name][hit] = rows[j[hit]]
+        # a line can cross a column more than once (a step, an occlusion): the nearest row
+        lo = np.searchsorted(key, query, side="left")
+        hi = np.searchsorted(key, query, side="right")
+        best = np.full(query.size, np.inf)
+        for k in range(int((hi - lo).max(initial=0))):
+            has = lo + k < hi
+            j = lo[has] + k
+            d = np.abs(rows[j] - v[has])
+            closer = d < best[has]
+            idx = np.flatnonzero(has)[closer]
+            best[idx] = d[closer]
+            true_row[name][idx] = rows[j[closer]]
     da = np.abs(v - true_row["A"])
     db = np.abs(v - true_row["B"])
     with np.errstate(invalid="ignore"):

@@ -57,7 +57,7 @@ class ArmPrior:
 
     sigma_mm: float  # per axis, 1 sigma, flange position (base frame)
     sigma_rad: float  # per axis, 1 sigma, flange orientation
-    smooth_fraction: float = 0.9  # share of each sigma that is a Gauss-Markov process (rest white)
+    smooth_fraction: float = 0.9  # the Gauss-Markov part's sigma over the whole (variances add)
     corr_time_s: float = 0.3  # correlation time of the smooth part
 
     @classmethod
@@ -220,7 +220,7 @@ def find_crossings(
     within ``radius_mm`` (default: 3 point spacings, at least 0.1 mm); each pair of stripes
     keeps its closest candidate per 2 mm cell, the two stripes are fitted locally by
     quadratic curves over ``half_mm`` either side and the crossing is the closest approach
-    of the two curves; it is kept if it lies within half a window of both seeds, the
+    of the two curves; it is kept if it lies within ``half_mm / 2`` of both seeds, the
     stripes cross at ``min_angle_deg`` or more and the gap is under ``radius_mm``.
     """
     from scipy.spatial import cKDTree
@@ -311,8 +311,9 @@ MIN_GAP_SIGMA_MM = 1e-4  # the best a crossing's gap is ever taken to be known (
 def prior_covariance(times: np.ndarray | None, prior: ArmPrior, F: int) -> np.ndarray:
     """Prior correlation (F, F) of each scaled error component between frames.
 
-    Per axis the error is a Gauss-Markov process of share ``smooth_fraction`` of the sigma
-    (correlation exp(-|t_k - t_l| / corr_time_s)) plus an independent part; without times
+    Per axis the error is a Gauss-Markov process of sigma ``smooth_fraction`` times the whole
+    (correlation exp(-|t_k - t_l| / corr_time_s)) plus an independent part carrying the rest
+    of the variance (sigma ``sqrt(1 - smooth_fraction^2)`` times the whole); without times
     the frames are independent.
     """
     rho = float(np.clip(prior.smooth_fraction, 0.0, 1.0))
@@ -519,6 +520,9 @@ def refine_frames(
     fpos = np.searchsorted(frames, frame)
     if F == 0 or (fpos >= F).any() or (frames[np.clip(fpos, 0, F - 1)] != frame).any():
         raise ValueError("every point's frame must be one of `frames`")
+    if times is not None and (len(times) != F or np.any(np.diff(np.asarray(times, float)) <= 0)):
+        # the prior's correlation is a function of the time between frames in frame order
+        raise ValueError("`times` must give one increasing time per frame of `frames`")
     views = np.asarray(viewpoints, dtype=np.float64)
     org = views if origins is None else np.asarray(origins, dtype=np.float64)
     lab = np.asarray(laser, dtype=np.int64)

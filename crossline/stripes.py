@@ -23,7 +23,9 @@ multiplies the stripe by a random field of contrast 0.1-0.3 (Dorsch, Häusler & 
 Appl. Opt. 33, 1994), while the sensor adds noise of a fraction of a DN. Under that noise the
 intensity centroid is far from efficient (it leans on the bright core, whose errors are
 largest). The fit models the profile as ``a exp(-(v - c)^2 / 2 s^2)`` over the run widened by
-``pad`` px, on a background line fitted beyond both ends, and weights each pixel by the
+``pad`` px or half the run's length, whichever is more (a steep stripe's long run has long
+tails along the column), never past the gap's midpoint to a neighbouring run less the
+background pixels, on a background line fitted beyond both ends, and weights each pixel by the
 inverse of its variance ``r^2 yhat^2 + sigma_n^2`` (relative noise ``r``, sensor noise
 ``sigma_n``), which is maximum likelihood for that noise; clipped pixels carry no weight.
 Both noise levels are measured in the frame: ``sigma_n`` from the residuals of the
@@ -528,11 +530,11 @@ def _gauss_windows_nb(flat, H, col, r0, r1, ext, nbg):  # pragma: no cover - com
 
 
 @_jit
-def _gauss_solve_nb(flat, H, col, r0, lo_w, hi_w, bc, bs, noise2, rel2, full, iters, warm,
+def _gauss_solve_nb(flat, H, col, r0, lo_w, hi_w, bc, bs, noise2, rel2, full, iters,
                     residuals, a_io, c_io, s_io, ok_io, flags):  # pragma: no cover - compiled
     """Gauss-Newton fit of each window's Gaussian (a, c, s), in place in a_io, c_io, s_io.
 
-    Without ``warm`` the start is the window's intensity centroid and second moment. With
+    The start is the window's intensity centroid and second moment. With
     ``residuals``, returns per window the sum of squared relative residuals of its bright
     pixels (model above half its peak) and their count, for the estimate of the relative noise.
     """
@@ -543,33 +545,26 @@ def _gauss_solve_nb(flat, H, col, r0, lo_w, hi_w, bc, bs, noise2, rel2, full, it
         base = col[i] * H
         lo = lo_w[i]
         hi = hi_w[i]
-        if warm:
-            if not ok_io[i]:
-                continue
-            a = a_io[i]
-            c = c_io[i]
-            s = s_io[i]
-        else:
-            s0 = 0.0
-            s1 = 0.0
-            s2 = 0.0
-            a = 0.0
-            for r in range(lo, hi + 1):
-                val = float(flat[base + r])
-                if val >= full:
-                    flags[i] |= 4
-                y = val - bc[i] - bs[i] * (r - r0[i])
-                if y > 0.0:
-                    s0 += y
-                    s1 += y * r
-                    s2 += y * r * r
-                if y > a:
-                    a = y
-            if s0 <= 0.0:
-                ok_io[i] = False
-                continue
-            c = s1 / s0
-            s = np.sqrt(max(s2 / s0 - c * c, 0.25))
+        s0 = 0.0
+        s1 = 0.0
+        s2 = 0.0
+        a = 0.0
+        for r in range(lo, hi + 1):
+            val = float(flat[base + r])
+            if val >= full:
+                flags[i] |= 4
+            y = val - bc[i] - bs[i] * (r - r0[i])
+            if y > 0.0:
+                s0 += y
+                s1 += y * r
+                s2 += y * r * r
+            if y > a:
+                a = y
+        if s0 <= 0.0:
+            ok_io[i] = False
+            continue
+        c = s1 / s0
+        s = np.sqrt(max(s2 / s0 - c * c, 0.25))
         c_start = c
         ok = True
         used = 0
@@ -675,8 +670,9 @@ def gaussian(
 ) -> dict[str, np.ndarray] | tuple[dict[str, np.ndarray], dict[str, float]]:
     """Weighted least-squares Gaussian profile of every stripe segment of every column.
 
-    Each run above ``threshold`` (fraction of full scale) is widened by ``pad`` px on each
-    side (never past the midpoint of the gap to a neighbouring run); a background line is
+    Each run above ``threshold`` (fraction of full scale) is widened on each side by ``pad``
+    px or half its length, whichever is more (never past the midpoint of the gap to a
+    neighbouring run, less the background pixels); a background line is
     fitted to the ``BG_FIT_PIXELS`` pixels beyond each end; the profile
     ``a exp(-(v - c)^2 / 2 s^2)`` is fitted by Gauss-Newton with the weights of maximum
     likelihood, ``1 / (r^2 yhat^2 + sigma_n^2)``: laser speckle is multiplicative (relative
@@ -693,8 +689,6 @@ def gaussian(
     imT = np.ascontiguousarray(cv2.transpose(img))
     W, H = imT.shape
     flat = imT.reshape(-1)
-    if not HAVE_NUMBA:  # pragma: no cover - numba is a dependency
-        raise RuntimeError("the gaussian extractor needs the numba package")
     col, r0, r1 = _runs_nb(np.flatnonzero(imT > _int_threshold(thr, imT.dtype)), H, float(min_width))
     k = col.size
     if k == 0:
@@ -720,13 +714,13 @@ def gaussian(
             a1, c1, s1 = np.zeros(sub.size), np.zeros(sub.size), np.zeros(sub.size)
             ok1 = np.ones(sub.size, bool)
             rel_ss, rel_n = _gauss_solve_nb(flat, H, col[sub], r0[sub], lo[sub], hi[sub], bc[sub],
-                                            bs[sub], noise2, rel * rel, full, int(iterations), False,
+                                            bs[sub], noise2, rel * rel, full, int(iterations),
                                             True, a1, c1, s1, ok1, fl)
             clean = ok1 & ((fl & SATURATED) == 0) & (rel_n > 0)
             if clean.any():
                 rel = float(np.sqrt(max(rel_ss[clean].sum() / rel_n[clean].sum(), 0.0)))
     _gauss_solve_nb(flat, H, col, r0, lo, hi, bc, bs, noise2, rel * rel, full, int(iterations),
-                    False, False, a, c, s, ok, flags)
+                    False, a, c, s, ok, flags)
     u = col.astype(np.float64)
     width = (r1 - r0 + 1).astype(np.float64)
     v = np.where(ok, c, np.nan)
@@ -891,8 +885,8 @@ def steger(
         seg, r, dv, g0, lam, nx, ny = _steger_nb.__wrapped__(g, col, r0, r1) \
             if hasattr(_steger_nb, "__wrapped__") else _steger_nb(g, col, r0, r1)
     # a run's real ridges are strong; on the flanks of a speckled stripe the Hessian is barely
-    # negative and a Newton step can land inside its own pixel: such claims (a tenth of the
-    # run's strongest ridge) are not ridges
+    # negative and a Newton step can land inside its own pixel: such claims (weaker than
+    # RIDGE_FRACTION of the run's strongest ridge) are not ridges
     if seg.size:
         strongest = np.zeros(k)
         np.minimum.at(strongest, seg, lam)
@@ -1075,6 +1069,8 @@ def run_extract_stripes(
     Frames are read once and streamed through ``threads`` worker threads; centres are
     stored in full-sensor pixels with the frame's laser state. The parquet's schema
     metadata (key ``crossline``) holds the parameters and counts. Returns that metadata.
+    ``extractor`` defaults to the paper's grey centre; the workflow's config uses the
+    Gaussian fit.
     """
     from crossline.capture import open_capture
 

@@ -136,7 +136,9 @@ def run_triangulate(
     are interpolated before AB centres are matched (:func:`crossline.disambiguate.bridge_gaps`);
     with ``track_references`` an AB frame's labelled stripes are the references of the next.
     ``max_frame_gap=None`` allows one frame more than the scan's own laser pattern needs
-    (:func:`crossline.disambiguate.reference_gap`): 3 for the paper's A, B, AB.
+    (:func:`crossline.disambiguate.reference_gap`): 3 for the paper's A, B, AB. ``smooth_px``
+    defaults to 1 (every column on its own, as the paper); the workflow's config smooths
+    over 5.
     """
     from crossline.capture import laser_pattern, open_capture
 

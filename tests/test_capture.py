@@ -396,3 +396,10 @@ def test_laser_pattern_breaks() -> None:
     p = laser_pattern(["A", "B", "AB", "AB"] * 5)
     assert p["period"] == ["A", "B", "AB", "AB"]
     assert laser_pattern(["A"] * 9)["period"] == ["A"]
+    # a long period (A, B and seven AB frames) is found, and with it the labelling's frame gap
+    long = ["A", "B"] + ["AB"] * 7
+    p = laser_pattern(long * 6)
+    assert p["period"] == long and p["breaks"] == []
+    from crossline.disambiguate import reference_gap
+
+    assert reference_gap(p["period"]) == 8

@@ -1,4 +1,4 @@
-"""The command line: 'auto'-or-value options parse and refuse bad values with a clear message."""
+"""The command line: checked and 'auto'-or-value options parse and refuse bad values with a clear message."""
 
 import pytest
 
@@ -22,14 +22,27 @@ def test_auto_or_value_options_parse():
     assert _parse(*ex, "--relative-noise", "0.15").relative_noise == 0.15
 
 
-@pytest.mark.parametrize("opt, value, expected", [
-    ("--max-frame-gap", "0", "expected 'auto' or a positive integer, got '0'"),
-    ("--max-frame-gap", "2.5", "expected 'auto' or a positive integer, got '2.5'"),
-    ("--relative-noise", "1.5", "expected 'auto' or a number in (0, 1), got '1.5'"),
-    ("--relative-noise", "lots", "expected 'auto' or a number in (0, 1), got 'lots'"),
+FUSE = ["fuse", "p.parquet", "--out", "c.ply"]
+EXTRACT = ["extract-stripes", "CAP", "s", "--out", "x"]
+
+
+def test_fuse_arm_options_parse():
+    a = _parse(*FUSE, "--arm-precision-rad", "auto", "--arm-smooth-fraction", "0", "--arm-corr-time-s", "0.5")
+    assert a.arm_precision_rad is None and a.arm_smooth_fraction == 0.0 and a.arm_corr_time_s == 0.5
+    assert _parse(*FUSE, "--arm-precision-rad", "1e-4").arm_precision_rad == 1e-4
+
+
+@pytest.mark.parametrize("argv, opt, value, expected", [
+    (TRI, "--max-frame-gap", "0", "expected 'auto' or a positive integer, got '0'"),
+    (TRI, "--max-frame-gap", "2.5", "expected 'auto' or a positive integer, got '2.5'"),
+    (EXTRACT, "--relative-noise", "1.5", "expected 'auto' or a number in (0, 1), got '1.5'"),
+    (EXTRACT, "--relative-noise", "lots", "expected 'auto' or a number in (0, 1), got 'lots'"),
+    (FUSE, "--arm-precision-rad", "none", "expected 'auto' or a number > 0, got 'none'"),
+    (FUSE, "--arm-smooth-fraction", "1.5", "expected a number in [0, 1], got '1.5'"),
+    (FUSE, "--arm-corr-time-s", "0", "expected a number > 0, got '0'"),
+    (FUSE, "--arm-corr-time-s", "auto", "expected a number > 0, got 'auto'"),
 ])
-def test_auto_or_value_options_refuse_bad_values(capsys, opt, value, expected):
-    argv = TRI if opt == "--max-frame-gap" else ["extract-stripes", "CAP", "s", "--out", "x"]
+def test_checked_options_refuse_bad_values(capsys, argv, opt, value, expected):
     with pytest.raises(SystemExit) as e:
         _parse(*argv, opt, value)
     assert e.value.code == 2

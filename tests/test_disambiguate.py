@@ -219,6 +219,10 @@ def test_bridge_gaps_fills_a_broken_stripe_not_a_jump():
     assert sorted(set(bu) - set(u[keep]) - set(u2)) == [105, 106, 107, 120]
     np.testing.assert_allclose(bv[bu < 140], 50 + 0.7 * (bu[bu < 140] - 100), atol=1e-12)
     assert np.all(np.diff(bu) >= 0)
+    # max_gap counts the missing columns: a gap of three is bridged with 3, not with 2; 1 bridges one
+    for max_gap, filled in ((3, [105, 106, 107, 120]), (2, [120]), (1, [120]), (0, [])):
+        bu, _ = bridge_gaps(u[keep], v[keep], max_gap)
+        assert sorted(set(bu) - set(u[keep])) == filled, max_gap
 
 
 def test_gappy_reference_still_labels_and_two_segments_of_one_laser_both_stay():

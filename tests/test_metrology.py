@@ -422,3 +422,21 @@ def test_label_errors_against_true_lines():
     assert r["checked"] == 200 - 12
     assert r["wrong"] == 3 and r["wrong_in_crossing_band"] == 2 and r["wrong_away_from_crossing"] == 1
     assert r["wrong_rate"] == pytest.approx(3 / 188)
+
+
+def test_label_errors_use_the_nearest_row_of_a_line_that_crosses_a_column_twice():
+    """Laser A lights a step: two segments 40 rows apart in the same columns. Points on either
+    segment are scored against their own segment, not the first row listed."""
+    from crossline.metrology import label_errors
+
+    u = np.arange(60)
+    low, high, b = np.full(60, 300.0), np.full(60, 260.0), np.full(60, 100.0)
+    tf = np.zeros(180, int)
+    tl = np.array(["A"] * 120 + ["B"] * 60)
+    tu, tv = np.r_[u, u, u], np.r_[low, high, b]
+    # the points: both A segments labelled A, the B line labelled B, two B points mislabelled A
+    lab = np.array(["A"] * 120 + ["B"] * 60)
+    lab[[125, 150]] = "A"
+    r = label_errors(tf, lab, tu + 0.1, tv + 0.2, tf, tl, tu, tv)
+    assert r["checked"] == 180
+    assert r["wrong"] == 2 and r["wrong_away_from_crossing"] == 2

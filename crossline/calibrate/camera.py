@@ -107,7 +107,7 @@ def bundle_adjust(
     points: np.ndarray,
     camera: Camera,
     T_cam_board: np.ndarray,
-) -> tuple[Camera, np.ndarray, np.ndarray]:
+) -> tuple[Camera, np.ndarray, np.ndarray, np.ndarray]:
     """Refine intrinsics, distortion and every view's pose (float64 LM) on points (V, N, 2).
 
     Returns the camera, the poses (V, 4, 4), the residuals (V, N, 2) and JᵀJ at the solution

@@ -515,15 +515,16 @@ def refine_handeye(
             x0 = sol.x
             if not estimate:
                 break
+            # the solver's last Jacobian is the one at its solution; the factors describe the
+            # weighting of this solve, whichever test below ends the loop
+            J = last_J["J"] if np.array_equal(last_J["x"], sol.x) else jac(sol.x)
+            factors = _variance_factors(J, sol.normal, sol.fun, V, N)
             if it > 0:
                 # where the data hardly tell a sigma (an arm far more precise than the board
                 # poses: the likelihood is flat in it), X no longer moves: stop there
                 d = sol.x[:6] - prev[:6]
                 if d @ np.linalg.solve(np.linalg.pinv(sol.normal)[:6, :6], d) < VCE_X_TOL**2:
                     break
-            # the solver's last Jacobian is the one at its solution
-            J = last_J["J"] if np.array_equal(last_J["x"], sol.x) else jac(sol.x)
-            factors = _variance_factors(J, sol.normal, sol.fun, V, N)
             # Förstner's update is sigma^2 <- sigma^2 f. It converges slowly for a group whose
             # rows are nearly spent on the parameters (an arm far more precise than the board
             # poses): while a group's steps keep one direction their gain doubles (to 16),
