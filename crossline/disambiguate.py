@@ -50,6 +50,7 @@ DROP_REASONS = ("off_frame", "merged", "no_reference", "unmatched", "ambiguous",
                 "inconsistent")
 _BIG = 1.0e6  # key = u * _BIG + v orders centres by column, then row (|v| < 1e5 px)
 ISLAND_MAX = 3  # longest run of one label inside a stripe trace of the other that is dropped
+ISOLATED_MAX = 8  # the same between centres left unlabelled (the end trimming would take most of it)
 
 
 def nearest_in_column(
@@ -314,18 +315,27 @@ class Disambiguator:
 def _trace_minority(u: np.ndarray, v: np.ndarray, lab: np.ndarray, merged: np.ndarray) -> np.ndarray:
     """AB-frame centres whose label (1 = A, 2 = B) is a short island inside a stripe of the other.
 
-    A stripe is one laser along its length. The labelled centres are linked into traces by
-    position alone; along a trace, a run of at most ``ISLAND_MAX`` centres with one label
-    between runs of the other label is an island: a stale reference of one laser lying on the
-    other's stripe for a column or two (an occlusion edge, a limb). Where two stripes really
-    meet at a shallow angle and a trace passes from one to the other, the label changes once,
-    with long runs on both sides: nothing is dropped there.
+    A stripe is one laser along its length. The centres (labelled or dropped, 0) are linked
+    into traces by position alone; along a trace, a run of at most ``ISLAND_MAX`` centres with
+    one label next to the other label, or of at most ``ISOLATED_MAX`` between centres left
+    unlabelled, is an island: a stale reference of one laser lying on the other's stripe for
+    a few columns (an occlusion edge, a limb, a steep flank the references lag behind).
+    Where two stripes really meet at a shallow angle and a trace passes from one to the
+    other, the label changes once, with long runs on both sides: nothing is dropped there.
     """
     out = np.zeros(u.size, bool)
-    idx = np.flatnonzero(~merged & (lab > 0))
-    if idx.size < 3:
+    idx = np.flatnonzero(~merged)
+    if idx.size < 3 or not (lab[idx] > 0).any():
         return out
     prev = link_traces(np.zeros(idx.size, np.int64), np.zeros(idx.size, "<U1"), u[idx], v[idx])
+    # where two stripes meet, two centres can continue the same one: only the nearer does,
+    # so that a trace never forks into both stripes
+    has = np.flatnonzero(prev >= 0)
+    if has.size > 1:
+        step = np.abs(v[idx][has] - v[idx][prev[has]])
+        o = np.lexsort((step, prev[has]))
+        fork = np.r_[False, prev[has][o][1:] == prev[has][o][:-1]]
+        prev[has[o[fork]]] = -1
     trace, _, _ = trace_position(prev, u[idx])
     order = np.lexsort((u[idx], trace))
     t, la = trace[order], lab[idx][order]
@@ -338,8 +348,10 @@ def _trace_minority(u: np.ndarray, v: np.ndarray, lab: np.ndarray, merged: np.nd
     same_trace_after = np.r_[run_trace[:-1] == run_trace[1:], False]
     before = np.r_[0, run_lab[:-1]]
     after = np.r_[run_lab[1:], 0]
-    island = (length <= ISLAND_MAX) & same_trace_before & same_trace_after & (before == after) \
-        & (before != run_lab)
+    other = 3 - run_lab  # the other laser's code
+    limit = np.where((before == other) | (after == other), ISLAND_MAX, ISOLATED_MAX)
+    island = (run_lab > 0) & (length <= limit) & same_trace_before & same_trace_after \
+        & (before != run_lab) & (after != run_lab)
     out[idx[order]] = island[run]
     return out
 

@@ -293,3 +293,27 @@ def test_tracked_references_follow_an_accelerating_sweep():
     # the A and B frames alone lag by up to ~13 rows: centres are lost or mislabelled
     assert done[True][0] > 0.99 and done[True][1] == 0
     assert done[False][0] < 0.9 or done[False][1] > 0
+
+
+def test_short_label_islands_in_a_stripe_are_dropped_long_runs_stay():
+    """Along one stripe: a run of 2 A labels inside B (a stale A reference on the B stripe), a
+    lone A label and a short A run among centres left unlabelled, and a longer A run among
+    unlabelled centres. All but the last are islands; the longer run is a stripe and stays."""
+    from crossline.disambiguate import ISOLATED_MAX, _trace_minority
+
+    u = np.arange(100.0)
+    v = 300.0 + 0.4 * u
+    lab = np.full(u.size, 2)
+    lab[20:22] = 1  # A island inside B
+    lab[40:60] = 0  # ambiguous stretch...
+    lab[50] = 1  # ...with one A label in it
+    lab[60:90] = 0
+    lab[64:64 + ISOLATED_MAX] = 1  # a short A run among unlabelled centres: an island too
+    lab[78:78 + ISOLATED_MAX + 1] = 1  # a longer one is a stripe
+    out = _trace_minority(u, v, lab, np.zeros(u.size, bool))
+    assert np.flatnonzero(out).tolist() == [20, 21, 50, *range(64, 64 + ISOLATED_MAX)]
+    # a second stripe elsewhere in the frame is a trace of its own: nothing dropped on it
+    u2, v2 = np.r_[u, u], np.r_[v, v + 200.0]
+    lab2 = np.r_[lab, np.r_[np.full(3, 1), np.full(97, 0)]]  # its first 3 columns labelled A
+    out2 = _trace_minority(u2, v2, lab2, np.zeros(u2.size, bool))
+    assert np.flatnonzero(out2).tolist() == np.flatnonzero(out).tolist()
