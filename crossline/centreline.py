@@ -39,9 +39,10 @@ def link_traces(
 
     A centre continues a trace if, in the same frame, for the same laser, the previous image
     column holds a centre within ``max_step_px`` rows (a steep stripe moves several rows per
-    column); the nearest such centre is taken. A link whose step differs from the step before
-    it by more than ``max_kink_px`` rows is cut: the stripe jumped (an edge, a step), and the
-    two sides are separate traces.
+    column); the nearest such centre is taken. A centre is continued by one centre at most,
+    the nearest (where two stripes meet, a trace does not fork into both). A link whose step
+    differs from the step before it by more than ``max_kink_px`` rows is cut: the stripe
+    jumped (an edge, a step), and the two sides are separate traces.
     """
     n = len(u)
     prev = np.full(n, -1, dtype=np.int64)
@@ -62,6 +63,10 @@ def link_traces(
         better = (d < best) & (d <= max_step_px)
         prev[better] = j[better]
         best[better] = d[better]
+    has = np.flatnonzero(prev >= 0)
+    if has.size > 1:  # two centres continuing the same one: the farther starts a trace
+        o = has[np.lexsort((best[has], prev[has]))]
+        prev[o[1:][prev[o[1:]] == prev[o[:-1]]]] = -1
     # a jump is a link whose step is out of line with the steps on both sides of it
     step = np.where(prev >= 0, v - v[np.maximum(prev, 0)], np.nan)
     nxt = np.full(n, -1, dtype=np.int64)

@@ -20,10 +20,11 @@ within ``T`` px (the nearest if both are). Beyond the paper:
 - **one centre per reference centre**: if two AB centres of one column are matched to the same
   reference centre, only the nearer keeps the label (the other is a conflict, dropped); two
   segments of one laser in one column (at a step) have two reference centres and both stay;
-- **one laser per stripe**: the labelled AB centres are linked into stripe traces by position
-  alone; a run of up to three centres with one label inside a trace of the other is dropped as
-  inconsistent: a stale reference of one laser can lie on the other's stripe for a column or
-  two (an occlusion edge, a limb), never along a whole stripe;
+- **one laser per stripe**: the AB centres are linked into stripe traces by position alone; a
+  run of up to ``ISLAND_MAX`` centres with one label next to the other label, or of up to
+  ``ISOLATED_MAX`` between centres left unlabelled, is dropped as inconsistent: a stale
+  reference of one laser can lie on the other's stripe for a few columns (an occlusion edge, a
+  limb, a steep flank), never along a whole stripe;
 - merged segments (flag ``MERGED`` from the extractor: two stripes in one blob) of AB frames
   are dropped, centres of ``off`` frames are dropped; every drop is counted by reason.
 
@@ -328,14 +329,6 @@ def _trace_minority(u: np.ndarray, v: np.ndarray, lab: np.ndarray, merged: np.nd
     if idx.size < 3 or not (lab[idx] > 0).any():
         return out
     prev = link_traces(np.zeros(idx.size, np.int64), np.zeros(idx.size, "<U1"), u[idx], v[idx])
-    # where two stripes meet, two centres can continue the same one: only the nearer does,
-    # so that a trace never forks into both stripes
-    has = np.flatnonzero(prev >= 0)
-    if has.size > 1:
-        step = np.abs(v[idx][has] - v[idx][prev[has]])
-        o = np.lexsort((step, prev[has]))
-        fork = np.r_[False, prev[has][o][1:] == prev[has][o][:-1]]
-        prev[has[o[fork]]] = -1
     trace, _, _ = trace_position(prev, u[idx])
     order = np.lexsort((u[idx], trace))
     t, la = trace[order], lab[idx][order]

@@ -43,7 +43,6 @@ except ImportError:  # pragma: no cover - depends on the environment
     _inflate_lib = None
 
 
-
 def _unfilter_py(raw: np.ndarray, h: int, stride: int, bpp: int, out: np.ndarray) -> bool:
     """PNG row unfiltering (filter types 0-4) into ``out`` (h, stride); False on a bad type."""
     for r in range(h):

@@ -879,11 +879,7 @@ def steger(
     if k == 0:
         return empty_centres()
     g = _smooth_band(img, col, r0, r1, sigma)
-    if HAVE_NUMBA:
-        seg, r, dv, g0, lam, nx, ny = _steger_nb(g, col, r0, r1)
-    else:  # pragma: no cover - numba is a dependency
-        seg, r, dv, g0, lam, nx, ny = _steger_nb.__wrapped__(g, col, r0, r1) \
-            if hasattr(_steger_nb, "__wrapped__") else _steger_nb(g, col, r0, r1)
+    seg, r, dv, g0, lam, nx, ny = _steger_nb(g, col, r0, r1)  # Python where numba is missing
     # a run's real ridges are strong; on the flanks of a speckled stripe the Hessian is barely
     # negative and a Newton step can land inside its own pixel: such claims (weaker than
     # RIDGE_FRACTION of the run's strongest ridge) are not ridges

@@ -12,14 +12,16 @@ import hashlib
 import shutil
 from pathlib import Path
 
+import numpy  # noqa: F401 - loaded here so that the BLAS limit below reaches its OpenBLAS
 import pytest
+import scipy.linalg  # noqa: F401 - and scipy's own OpenBLAS build
 from threadpoolctl import threadpool_limits
 
 from crossline.provenance import PACKAGE_ROOT, module_files
 
 # One BLAS thread per test process, as the crossline command runs (crossline.cli): each
 # pytest-xdist worker is already one of the cores, and a second BLAS thread per worker only
-# spins against the other worker (a hand-eye test: 16 s alone, 74 s beside another worker).
+# spins against the other worker. threadpoolctl limits the libraries already loaded.
 _ONE_BLAS_THREAD = threadpool_limits(limits=1, user_api="blas")
 
 REPO = PACKAGE_ROOT.parent

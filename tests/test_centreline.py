@@ -103,3 +103,12 @@ def test_ends_against_a_merged_crossing_are_not_stripe_ends() -> None:
     for f, dv in ((1, 0.0), (0, 40.0)):
         s, e = blocked_ends(trace, frame, u, v, np.full(6, f), bu, 300 + 0.5 * bu + dv)
         assert not s.any() and not e.any()
+
+
+def test_a_trace_does_not_fork_where_two_stripes_meet() -> None:
+    """Two stripes leave one centre (an X seen by one laser's position alone): each centre is
+    continued by the nearest centre of the next column only, the other starts a trace."""
+    u = np.array([10.0, 11.0, 11.0, 12.0, 12.0])
+    v = np.array([100.0, 100.5, 104.0, 101.0, 108.0])
+    prev = link_traces(np.zeros(5, int), np.full(5, "A"), u, v)
+    assert prev.tolist() == [-1, 0, -1, 1, 2]
