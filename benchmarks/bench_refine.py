@@ -35,6 +35,7 @@ machine: noisy; the lead re-runs on a quiet one.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import shutil
 import subprocess
@@ -53,7 +54,7 @@ sys.path.insert(0, str(REPO))
 from crossline import metrology as mt  # noqa: E402
 from crossline.capture import open_capture  # noqa: E402
 from crossline.fuse import camera_centres, estimate_normals, orient_normals, read_ply  # noqa: E402
-from crossline.geometry import transform_from_pose  # noqa: E402
+from crossline.geometry import transform_from_pose, transform_points  # noqa: E402
 from crossline.refine import ArmPrior, correction_transforms, refine_frames  # noqa: E402
 
 CACHE = REPO / "benchmarks" / ".cache" / "refine"
@@ -130,7 +131,7 @@ def true_points(capture: Path, scan: str, df: pd.DataFrame, X: np.ndarray) -> np
     T = transform_from_pose(tp[["x", "y", "z"]].to_numpy(), tp[["qw", "qx", "qy", "qz"]].to_numpy()) @ X
     pos = np.searchsorted(tp["frame"].to_numpy(), df["frame"].to_numpy())
     pc = df[["x_cam", "y_cam", "z_cam"]].to_numpy()
-    return np.einsum("nij,nj->ni", T[pos, :3, :3], pc) + T[pos, :3, 3]
+    return transform_points(T[pos], pc)
 
 
 def pose_error(q: np.ndarray, p_true: np.ndarray, normals: np.ndarray) -> dict[str, float]:
@@ -156,7 +157,7 @@ def refined_from_stats(df: pd.DataFrame, stats: dict) -> np.ndarray:
     C = correction_transforms(np.array(pf["rotation_rad"]), np.array(pf["translation_mm"]),
                               np.array(pf["origin_mm"]))
     pos = np.searchsorted(np.array(pf["frame"]), df["frame"].to_numpy())
-    return np.einsum("nij,nj->ni", C[pos, :3, :3], p) + C[pos, :3, 3]
+    return transform_points(C[pos], p)
 
 
 _MESH: dict[str, tuple[np.ndarray, np.ndarray]] = {}
@@ -265,8 +266,7 @@ def run_capture(name: str, capture: Path, draws: int) -> dict[str, Any]:
         float(fuse_cfg.get("arm_precision_mm", 0.02)), None if rad in (None, "auto") else float(rad),
         smooth_fraction=float(fuse_cfg.get("arm_smooth_fraction", 0.9)),
         corr_time_s=float(fuse_cfg.get("arm_corr_time_s", 0.3)))
-    res["prior"] = {"sigma_mm": prior.sigma_mm, "sigma_rad": prior.sigma_rad,
-                    "smooth_fraction": prior.smooth_fraction, "corr_time_s": prior.corr_time_s}
+    res["prior"] = dataclasses.asdict(prior)
     res["report_s"] = {k: runs[k]["_report_s"] for k in runs}
 
     for s in scans:
@@ -325,7 +325,7 @@ def monte_carlo(capture: Path, scan: str, spec: Any, df: pd.DataFrame, X: np.nda
     for k in range(draws):
         Tr, _, _ = noise_scan(Tt, arm, dt, np.random.default_rng(1000 + k))
         M = (Tr @ X)[pos]
-        p = np.einsum("nij,nj->ni", M[:, :3, :3], pc) + M[:, :3, 3]
+        p = transform_points(M, pc)
         frames, views = camera_centres(fr, pc, p)
         fpos = np.searchsorted(tp["frame"].to_numpy(), frames)
         t = time.perf_counter()
@@ -425,7 +425,7 @@ def print_capture(name: str, res: dict) -> None:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--captures", default="demo,compact", help="demo, compact or capture folders")
-    ap.add_argument("--draws", type=int, default=6, help="fresh arm-error draws per scan (0: none)")
+    ap.add_argument("--draws", type=int, default=8, help="fresh arm-error draws per scan (0: none)")
     a = ap.parse_args(argv)
     out: dict[str, Any] = {}
     for name in a.captures.split(","):

@@ -24,6 +24,7 @@ by Open3D so that its bytes depend only on the points (no timestamp, no library 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 from dataclasses import dataclass, field
@@ -296,8 +297,7 @@ def _refine(
              d["frames"], d.pop("seconds"), d.pop("seconds_crossings"))
     info: dict[str, Any] = {
         "method": "A-B stripe crossings between frames, MAP per-frame rigid corrections",
-        "prior": {"sigma_mm": prior.sigma_mm, "sigma_rad": prior.sigma_rad,
-                  "smooth_fraction": prior.smooth_fraction, "corr_time_s": prior.corr_time_s,
+        "prior": {**dataclasses.asdict(prior),
                   "time_correlated": times is not None,
                   "rotation_centre": "flange (frames table)" if origins is not None
                   else "camera centre"},
@@ -497,16 +497,16 @@ def run_fuse(
         )
     prior = None
     if refine_poses:
-        if not (arm_precision_mm > 0 and (arm_precision_rad is None or arm_precision_rad > 0)
-                and 0 <= arm_smooth_fraction <= 1 and arm_corr_time_s > 0):
+        try:
+            prior = ArmPrior.from_precision(arm_precision_mm, arm_precision_rad,
+                                            smooth_fraction=arm_smooth_fraction,
+                                            corr_time_s=arm_corr_time_s)
+        except ValueError:  # the prior checks its own ranges; say it in the config's terms
             raise StageError(
                 f"pose refinement parameters out of range: arm_precision_mm={arm_precision_mm} "
-                f"(> 0), arm_precision_rad={arm_precision_rad} (> 0 or none), "
+                f"(> 0), arm_precision_rad={arm_precision_rad} (> 0 or auto), "
                 f"arm_smooth_fraction={arm_smooth_fraction} (0..1), "
-                f"arm_corr_time_s={arm_corr_time_s} (> 0)")
-        prior = ArmPrior.from_precision(arm_precision_mm, arm_precision_rad,
-                                        smooth_fraction=arm_smooth_fraction,
-                                        corr_time_s=arm_corr_time_s)
+                f"arm_corr_time_s={arm_corr_time_s} (> 0)") from None
     table = _read_frames(frames) if refine_poses and frames is not None else None
     try:
         df = pd.read_parquet(points)

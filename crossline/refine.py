@@ -37,11 +37,13 @@ from typing import Any
 
 import numpy as np
 
+from crossline.geometry import make_transform, rotvec_to_matrix, transform_points
+from crossline.metrology import robust_sigma
+
 __all__ = [
     "ArmPrior",
     "Crossings",
     "Refinement",
-    "apply_corrections",
     "correction_transforms",
     "find_crossings",
     "refine_frames",
@@ -59,6 +61,14 @@ class ArmPrior:
     sigma_rad: float  # per axis, 1 sigma, flange orientation
     smooth_fraction: float = 0.9  # the Gauss-Markov part's sigma over the whole (variances add)
     corr_time_s: float = 0.3  # correlation time of the smooth part
+
+    def __post_init__(self) -> None:
+        if not (self.sigma_mm > 0 and self.sigma_rad > 0 and 0 <= self.smooth_fraction <= 1
+                and self.corr_time_s > 0):
+            raise ValueError(
+                f"arm prior out of range: sigma_mm={self.sigma_mm} (> 0), sigma_rad={self.sigma_rad} "
+                f"(> 0), smooth_fraction={self.smooth_fraction} (0..1), "
+                f"corr_time_s={self.corr_time_s} (> 0)")
 
     @classmethod
     def from_precision(
@@ -316,11 +326,11 @@ def prior_covariance(times: np.ndarray | None, prior: ArmPrior, F: int) -> np.nd
     of the variance (sigma ``sqrt(1 - smooth_fraction^2)`` times the whole); without times
     the frames are independent.
     """
-    rho = float(np.clip(prior.smooth_fraction, 0.0, 1.0))
+    rho = prior.smooth_fraction
     if times is None or rho == 0.0:
         return np.eye(F)
     t = np.asarray(times, dtype=np.float64)
-    phi = np.exp(-np.abs(t[:, None] - t[None, :]) / max(prior.corr_time_s, 1e-12))
+    phi = np.exp(-np.abs(t[:, None] - t[None, :]) / prior.corr_time_s)
     return rho * rho * phi + (1.0 - rho * rho) * np.eye(F)
 
 
@@ -332,12 +342,12 @@ def _prior_sparse(times: np.ndarray | None, prior: ArmPrior, F: int):
     """
     import scipy.sparse as sp
 
-    rho = float(np.clip(prior.smooth_fraction, 0.0, 1.0))
+    rho = prior.smooth_fraction
     eye = sp.identity(6 * F, format="csr")
     if times is None or rho == 0.0:
         return eye, 6 * F
     t = np.asarray(times, dtype=np.float64)
-    phi = np.exp(-np.diff(t) / max(prior.corr_time_s, 1e-12))
+    phi = np.exp(-np.diff(t) / prior.corr_time_s)
     # AR(1) rows on s: s_0 / rho, (s_k - phi s_{k-1}) / (rho sqrt(1 - phi^2))
     q = rho * np.sqrt(np.maximum(1.0 - phi * phi, 1e-12))
     main = sp.diags(np.repeat(np.concatenate([[1.0 / rho], 1.0 / q]), 6), 0, shape=(6 * F, 6 * F))
@@ -419,8 +429,7 @@ def solve_errors(
     # unobservable directions to rounding
     floor = MIN_GAP_SIGMA_MM / float(np.median(s0))
     w = np.ones(K)
-    scale = max(1.4826 * float(np.median(np.abs(cr.gap - np.median(cr.gap)))) / float(np.median(s0)),
-                floor)
+    scale = max(robust_sigma(cr.gap) / float(np.median(s0)), floor)
     z = np.zeros(nu + 1)
     iterations = 0
     for iterations in range(1, max_iter + 1):  # noqa: B007 (the count is reported)
@@ -467,21 +476,10 @@ def solve_errors(
 def correction_transforms(rotation: np.ndarray, translation: np.ndarray,
                           origins: np.ndarray) -> np.ndarray:
     """Corrections C (F, 4, 4) undoing errors (ω, t) about ``origins``: p_true = C @ p_reported."""
-    from crossline.geometry import rotvec_to_matrix
-
     Rinv = np.swapaxes(rotvec_to_matrix(np.asarray(rotation, dtype=np.float64)), 1, 2)
     o = np.asarray(origins, dtype=np.float64)
-    C = np.tile(np.eye(4), (len(o), 1, 1))
-    C[:, :3, :3] = Rinv
     # p_rep − o_rep = R(ω) (p_true − o_rep + t)  =>  p_true = R^T (p_rep − o_rep) + o_rep − t
-    C[:, :3, 3] = o - np.asarray(translation) - np.einsum("fij,fj->fi", Rinv, o)
-    return C
-
-
-def apply_corrections(points: np.ndarray, frame_pos: np.ndarray, C: np.ndarray) -> np.ndarray:
-    """Points (N, 3) moved by their frame's correction C[frame_pos] (F, 4, 4)."""
-    Cp = C[frame_pos]
-    return np.einsum("nij,nj->ni", Cp[:, :3, :3], points) + Cp[:, :3, 3]
+    return make_transform(Rinv, o - np.asarray(translation) - np.einsum("fij,fj->fi", Rinv, o))
 
 
 # ----------------------------------------------------------------------------- all of it
@@ -531,7 +529,7 @@ def refine_frames(
     t1 = time.perf_counter()
     e, beta, info = solve_errors(cr, org, prior, times, huber=huber)
     C = correction_transforms(e[:, :3], e[:, 3:], org)
-    out = apply_corrections(p, fpos, C)
+    out = transform_points(C[fpos], p)
     shift2 = np.sum((out - p) ** 2, axis=1)
     cnt = np.bincount(fpos, minlength=F)
     frame_rms = np.sqrt(np.bincount(fpos, shift2, F) / np.maximum(cnt, 1))

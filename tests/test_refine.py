@@ -27,6 +27,7 @@ from crossline.geometry import (
     make_transform,
     orthonormalize,
     rotvec_to_matrix,
+    transform_points,
 )
 from tests.test_report_synthetic import X_PAPER, scan_points, scene
 
@@ -56,7 +57,7 @@ def reported(df: pd.DataFrame, T_base_cam: np.ndarray, e: np.ndarray):
     Trep = make_transform(Rt @ rotvec_to_matrix(dth), Tt[:, :3, 3] + e[:, 3:]) @ X
     fr = df["frame"].to_numpy()
     pc = df[["x_cam", "y_cam", "z_cam"]].to_numpy()
-    p = np.einsum("nij,nj->ni", Trep[fr, :3, :3], pc) + Trep[fr, :3, 3]
+    p = transform_points(Trep[fr], pc)
     return p, (Trep @ invert_transform(X))[:, :3, 3]
 
 
@@ -81,7 +82,7 @@ class Scan:
             pc = self.df[["x_cam", "y_cam", "z_cam"]].to_numpy()
             pc = pc * (1 + noise * rng.standard_normal(len(pc)) / np.linalg.norm(pc, axis=1))[:, None]
             self.df[["x_cam", "y_cam", "z_cam"]] = pc
-            self.p_true = np.einsum("nij,nj->ni", self.T[self.frame, :3, :3], pc) + self.T[self.frame, :3, 3]
+            self.p_true = transform_points(self.T[self.frame], pc)
 
     def refine(self, e: np.ndarray | None, **kw) -> tuple[np.ndarray, R.Refinement]:
         """Reported points with errors e (None: exact poses) and their refinement."""
@@ -117,10 +118,15 @@ def plate() -> Scan:
 def test_prior_from_the_datasheet_figure():
     p = R.ArmPrior.from_precision(0.02)
     assert p.sigma_mm == pytest.approx(0.02 / (2 * np.sqrt(3)))  # 2 sigma of the 3-D error
-    assert p.sigma_rad == pytest.approx(p.sigma_mm / R.LEVER_MM)
+    assert p.sigma_rad == pytest.approx(p.sigma_mm / 300.0)  # the position figure over one 300 mm link
     q = R.ArmPrior.from_precision(0.03, 1e-4, smooth_fraction=0.5, corr_time_s=1.0)
     assert q.sigma_rad == pytest.approx(1e-4 / (2 * np.sqrt(3)))
     assert q.sigmas().tolist() == [q.sigma_rad] * 3 + [q.sigma_mm] * 3
+    for bad in ({"smooth_fraction": 1.5}, {"corr_time_s": 0.0}):
+        with pytest.raises(ValueError, match="arm prior out of range"):
+            R.ArmPrior.from_precision(0.02, **bad)
+    with pytest.raises(ValueError, match=r"sigma_mm=0\.0 "):
+        R.ArmPrior.from_precision(0.0)
 
 
 def test_dense_and_banded_priors_are_the_same_model():
@@ -256,7 +262,7 @@ def test_corrections_undo_known_rigid_errors_exactly():
     # reported: p_rep - o = R(ω) (p_true - o + t), o being the reported flange origin
     p_rep = np.einsum("fij,fj->fi", rotvec_to_matrix(om), p_true - o + t) + o
     C = R.correction_transforms(om, t, o)
-    back = R.apply_corrections(p_rep, np.arange(5), C)
+    back = transform_points(C, p_rep)
     assert np.abs(back - p_true).max() < 1e-10
 
 
@@ -317,8 +323,8 @@ def test_rendered_stripes_recover_injected_pose_errors(quick_capture: Path, tmp_
     pos = np.searchsorted(tp["frame"].to_numpy(), df["frame"].to_numpy())
     pc = df[["x_cam", "y_cam", "z_cam"]].to_numpy()
     M_true, M_rep = (Tt @ X)[pos], (Trep @ X)[pos]
-    p_true = np.einsum("nij,nj->ni", M_true[:, :3, :3], pc) + M_true[:, :3, 3]
-    p_rep = np.einsum("nij,nj->ni", M_rep[:, :3, :3], pc) + M_rep[:, :3, 3]
+    p_true = transform_points(M_true, pc)
+    p_rep = transform_points(M_rep, pc)
     frames, views = camera_centres(df["frame"].to_numpy(), pc, p_rep)
     lab = np.where(df["laser"] == "A", 1, 2)
     ref = R.refine_frames(df["frame"].to_numpy(), lab, p_rep, views, prior, frames=frames,
