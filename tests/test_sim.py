@@ -232,16 +232,15 @@ def test_refuses_to_overwrite_and_leaves_nothing_half_written(tmp_path, monkeypa
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
 def test_written_pngs_read_back_identically_with_every_decoder(tmp_path, dtype):
-    """The simulator's PNGs (Average filter, Huffman-only zlib) are plain PNGs: OpenCV, the
-    project's fast decoder and its chunk checker read them, pixel for pixel."""
+    """crossline's PNGs (Average filter, Huffman-only zlib; the simulator's frames) are plain
+    PNGs: OpenCV, the project's fast decoder and its chunk checker read them, pixel for pixel."""
     from crossline.framestream import decode_png, fast_decoder_available
-    from crossline.imageio import png_info, read_image
-    from crossline.sim.capture import write_png
+    from crossline.imageio import png_info, read_image, write_png
 
     rng = np.random.default_rng(6)
     top = np.iinfo(dtype).max
     img = np.clip(rng.normal(0.3 * top, 0.05 * top, (101, 333)), 0, top).astype(dtype)
-    img[40:45] = top  # a saturated stripe and a dark corner: every filter case
+    img[40:45] = top  # a saturated stripe and a dark corner: the unfilter at its extremes
     img[:7, :9] = 0
     path = tmp_path / "f.png"
     write_png(path, img)

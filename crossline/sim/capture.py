@@ -55,6 +55,7 @@ import yaml
 from crossline.atomic import atomic_path, write_json, write_parquet
 from crossline.errors import CrosslineError
 from crossline.geometry import invert_transform, transform_to_pose
+from crossline.imageio import write_png
 from crossline.sim import arm as arm_mod
 from crossline.sim import views as views_mod
 from crossline.sim.part import part_mesh, write_ply
@@ -107,9 +108,9 @@ def _worker_init() -> None:
 
     Every image allocates and frees arrays of tens of MB. glibc hands blocks that large to
     mmap and back to the kernel on free, so the next image faults the same memory in again,
-    page by page (over 500 000 page faults and seconds of system time for the --quick
-    capture). In a worker, which exits when the render ends, freed memory is kept for reuse
-    instead: same arithmetic, same bytes, fewer page faults.
+    page by page (seconds of system time for the --quick capture; bench_render prints it).
+    In a worker, which exits when the render ends, freed memory is kept for reuse instead:
+    same arithmetic, same bytes, fewer page faults.
     """
     from threadpoolctl import threadpool_limits
 
@@ -137,25 +138,6 @@ def _light_base(T_cam_base: np.ndarray, e_white: float, ref_base: np.ndarray) ->
     return Light(e_white, R @ np.array([0.0, 0.0, 1.0]), R @ np.array([0.8 * GRAD_MM, GRAD_MM, 0.0]),
                  R @ ref_base + T_cam_base[:3, 3])
 
-
-PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY,
-              cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_AVG]
-
-
-def write_png(path: Path, img: np.ndarray) -> None:
-    """Grey PNG, written atomically; the Average row filter, zlib level 1, Huffman coding only.
-
-    Noisy sensor images have no long repeats for LZ77 to find: Huffman-only is ~1.5x faster
-    and ~20 % smaller than the default strategy. One fixed filter (Average: the smooth
-    background predicted from the left and upper neighbours) instead of libpng's per-row
-    trial of all five halves the encoding time for the same size. PNG is lossless: any
-    decoder reads the array back. Same array, same bytes.
-    """
-    ok, buf = cv2.imencode(".png", img, PNG_PARAMS)
-    if not ok:  # pragma: no cover
-        raise CrosslineError(f"{path}: PNG encoding failed")
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(buf.tobytes())
 
 
 def _rng(seed: int, *key: int) -> np.random.Generator:

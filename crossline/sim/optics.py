@@ -4,9 +4,10 @@ Rays. Every sample ray must reproject to its sensor position to well under 0.001
 exact inverse of the distortion (Newton, ``crossline.camera.undistort_normalized``) is
 computed on a coarse grid of sensor positions (every ``GRID_STEP`` px) and carried to every
 pixel centre (and to the 2 x 2 sample positions of the scan window) by a tensor-product
-cubic spline in float64 (matrix products, on one BLAS thread); a sample at another
-sub-pixel offset gets one step of the local inverse Jacobian of the distortion from its
-pixel centre (second-order error < 1.4e-5 px within half a pixel).
+cubic spline in float64 (matrix products; the render runs BLAS on one thread, see
+``crossline.sim.capture``); a sample at another sub-pixel offset gets one step of the local
+inverse Jacobian of the distortion from its pixel centre (second-order error < 1.4e-5 px
+within half a pixel).
 ``tests/test_sim_optics.py`` checks the reprojection of random samples over the whole
 sensor, corners included: < 1e-4 px.
 
@@ -21,7 +22,7 @@ arithmetic and the draws are those of one pass over the whole image.
 Random draws. Every Gaussian of the sensor model, the speckle and the PRNU map comes from
 ``standard_normal_f32``: the Box-Muller transform of the generator's 64-bit words (two 32-bit
 uniforms, two float32 normals per word), exact N(0, 1) to float32 precision with tails to
-6.7 sigma, three times faster than numpy's float32 ziggurat. The dark (Poisson) and
+6.7 sigma, faster than numpy's float32 ziggurat. The dark (Poisson) and
 near-saturation pixels keep numpy's Poisson and float64 normals. Each image has its own
 generator (seeded by kind and index), so a capture does not depend on the number of workers.
 
@@ -50,7 +51,6 @@ from crossline.camera import Camera, undistort_normalized
 
 __all__ = [
     "GRID_STEP",
-    "NOISE_BLOCK",
     "RayTable",
     "SensorModel",
     "pixel_offsets",
@@ -60,7 +60,7 @@ __all__ = [
 
 GRID_STEP = 16  # px between exact (Newton) undistortions; the spline carries them to every pixel
 HALF_ROWS = 32  # pixel rows per band in which the 2 x 2 sample positions are splined
-NOISE_BLOCK = 1 << 16  # pixels per band of rows in digitise (fits the L2 cache)
+NOISE_BLOCK = 1 << 16  # pixels per band of rows in digitise (cache-sized)
 
 
 def distortion_jacobian(xy: np.ndarray, dist) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -74,19 +74,6 @@ def distortion_jacobian(xy: np.ndarray, dist) -> tuple[np.ndarray, np.ndarray, n
     b = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
     c = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
     return a, b, c
-
-
-def _one_blas_thread():
-    """Context in which BLAS runs on one thread (small products: threads only wait)."""
-    global _BLAS
-    if _BLAS is None:
-        from threadpoolctl import ThreadpoolController
-
-        _BLAS = ThreadpoolController()
-    return _BLAS.limit(limits=1, user_api="blas")
-
-
-_BLAS = None
 
 
 def _spline_matrix(coarse: np.ndarray, fine: np.ndarray) -> np.ndarray:
@@ -111,9 +98,8 @@ class RayTable:
         Mu = _spline_matrix(uc, u)
         Mv = _spline_matrix(vc, v)
         self.xy = np.empty((h, w, 2))
-        with _one_blas_thread():
-            for k in range(2):
-                self.xy[..., k] = Mv @ xy[..., k] @ Mu.T
+        for k in range(2):
+            self.xy[..., k] = Mv @ xy[..., k] @ Mu.T
         self._half: np.ndarray | None = None  # 2 x 2 samples, (h, w, 4, 2), see sample_xy_2x2
 
     def sample_xy_2x2(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -132,22 +118,21 @@ class RayTable:
 
         The spline runs along u first (few coarse rows), then along v in bands of
         HALF_ROWS pixel rows: a third of the products of the other order, and no temporary
-        larger than a band. One BLAS thread, bands of fixed size: the same bytes in any
-        process.
+        larger than a band. Bands of fixed size (and one BLAS thread, set by the render): the
+        same bytes in any process.
         """
         x0, y0, w, h = self.window
         uc, vc, xy = self._coarse_grid
         Mu = _spline_matrix(uc, x0 - 0.25 + 0.5 * np.arange(2 * w))
         Mv = _spline_matrix(vc, y0 - 0.25 + 0.5 * np.arange(2 * h))
         half = np.empty((h, w, 4, 2))
-        with _one_blas_thread():
-            along_u = [np.ascontiguousarray(xy[..., k] @ Mu.T) for k in range(2)]  # (len(vc), 2w)
-            for r0 in range(0, h, HALF_ROWS):
-                r1 = min(r0 + HALF_ROWS, h)
-                for k in range(2):
-                    b = Mv[2 * r0 : 2 * r1] @ along_u[k]  # rows 2 r + b, columns 2 c + a
-                    b = b.reshape(r1 - r0, 2, w, 2).transpose(0, 2, 1, 3)  # [r, c, b, a]
-                    half[r0:r1, :, :, k] = b.reshape(r1 - r0, w, 4)  # sample a + 2 b
+        along_u = [np.ascontiguousarray(xy[..., k] @ Mu.T) for k in range(2)]  # (len(vc), 2w)
+        for r0 in range(0, h, HALF_ROWS):
+            r1 = min(r0 + HALF_ROWS, h)
+            for k in range(2):
+                b = Mv[2 * r0 : 2 * r1] @ along_u[k]  # rows 2 r + b, columns 2 c + a
+                b = b.reshape(r1 - r0, 2, w, 2).transpose(0, 2, 1, 3)  # [r, c, b, a]
+                half[r0:r1, :, :, k] = b.reshape(r1 - r0, w, 4)  # sample a + 2 b
         return half
 
     def pixel_xy(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -181,8 +166,8 @@ def standard_normal_f32(rng: np.random.Generator, n: int, out: np.ndarray | None
     u2 in [0, 1) and two normals ``sqrt(-2 ln u1) (cos, sin)(2 pi u2)``, stored side by
     side: drawing n1 (even) and then n2 values gives the same values as drawing n1 + n2 at
     once. The transform is exact; in float32 the draws are N(0, 1) to float32 precision,
-    with tails to 6.7 sigma (P(|z| > 6.7) = 2e-11 for a true normal). Three times faster
-    than numpy's float32 ziggurat, which spends its time on per-sample branches.
+    with tails to 6.7 sigma (P(|z| > 6.7) = 2e-11 for a true normal). Faster than numpy's
+    float32 ziggurat, which spends its time on per-sample branches.
     """
     m = (n + 1) // 2
     if out is None:

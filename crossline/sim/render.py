@@ -905,7 +905,7 @@ def render_band(model: RigModel, scene: Scene, sheets: list[LaserSheet], window,
 
 
 def _nonzero(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``np.nonzero`` of a uint8 image (rows, cols in row-major order), by OpenCV (8x faster)."""
+    """``np.nonzero`` of a uint8 image (rows, cols in row-major order), by OpenCV (faster)."""
     pts = cv2.findNonZero(mask)
     if pts is None:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)

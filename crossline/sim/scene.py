@@ -50,7 +50,7 @@ def empty3(n: int) -> np.ndarray:
 
     Point arrays are (N, 3) but their maths runs on columns: in column-major storage
     ``P[:, k]`` is contiguous, and ``P - c`` or ``t[:, None] * d`` are one vectorised loop
-    over N instead of N loops over 3 (several times faster). The values do not depend on
+    over N instead of N loops over 3. The values do not depend on
     the storage order.
     """
     return np.empty((3, n)).T
