@@ -1,7 +1,7 @@
 """Hand-eye accuracy over several rendered captures (seeds): one realisation is not a figure.
 
 For each preset and seed, renders only what the hand-eye stage needs (the hand-eye views,
-byte-identical to those of a full ``crossline simulate`` capture of that seed; cached under
+by the simulator's own jobs and per-image seeds, as in a full capture of that seed; cached under
 ``benchmarks/.cache/handeye/``), detects the board, runs ``solve_handeye`` with the TRUE
 camera from the simulator, and prints per seed and over seeds (median and RMS):
 
@@ -93,9 +93,8 @@ def _calibration(rig: RigPreset, views: int | None) -> CalibrationSpec:
 def render(rig: RigPreset, seed: int, views: int | None, part: str, threads: int) -> Path:
     """One seed's hand-eye views (``part="handeye"``) or its camera and laser board views ("boards").
 
-    The jobs, seeds and noise draws are those of ``crossline.sim.capture``, so the images are
-    byte-identical to a full capture's of that seed; cached by preset, part, view count, seed
-    and the simulator's source.
+    The jobs, seeds and noise draws are those of ``crossline.sim.capture`` (each image its own
+    generator); cached by preset, part, view count, seed and the simulator's source.
     """
     cal = _calibration(rig, views)
     n = cal.handeye_views

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
+from crossline.disambiguate import nearest_in_column
 from crossline.geometry import angle_between, fit_sphere, plane_distance
 
 __all__ = [
@@ -903,24 +904,14 @@ def label_errors(
     true_row = {}
     for name in ("A", "B"):
         m = tl == name
-        true_row[name] = np.full(query.size, np.nan)
         if not m.any():
+            true_row[name] = np.full(query.size, np.nan)
             continue
-        key = tf[m] * span + tu[m]
-        order = np.argsort(key, kind="stable")
-        key, rows = key[order], tv[m][order]
+        key = (tf[m] * span + tu[m]).astype(np.float64)
+        order = np.lexsort((tv[m], key))
         # a line can cross a column more than once (a step, an occlusion): the nearest row
-        lo = np.searchsorted(key, query, side="left")
-        hi = np.searchsorted(key, query, side="right")
-        best = np.full(query.size, np.inf)
-        for k in range(int((hi - lo).max(initial=0))):
-            has = lo + k < hi
-            j = lo[has] + k
-            d = np.abs(rows[j] - v[has])
-            closer = d < best[has]
-            idx = np.flatnonzero(has)[closer]
-            best[idx] = d[closer]
-            true_row[name][idx] = rows[j[closer]]
+        j, _ = nearest_in_column(key[order], tv[m][order], query.astype(np.float64), v)
+        true_row[name] = np.where(j >= 0, tv[m][order][np.maximum(j, 0)], np.nan)
     da = np.abs(v - true_row["A"])
     db = np.abs(v - true_row["B"])
     with np.errstate(invalid="ignore"):

@@ -300,7 +300,8 @@ def _rms(v: np.ndarray) -> float:
 
 
 # Over K trials the mean of a chi-square with 6 degrees of freedom has sd sqrt(12 / K) (0.63 for
-# K = 30): [3.75, 9.6] (a covariance off by 1.6x in variance fails) is > 3.5 sd from 6 either way.
+# K = 30): [3.75, 9.6] is > 3.5 sd from 6 either way; a covariance off by more than 1.6x in
+# variance puts the expected mean outside it (at 1.6x exactly, on its edge).
 CHI2_MEAN_RANGE = (6.0 / 1.6, 6.0 * 1.6)
 
 
@@ -325,11 +326,10 @@ def test_ml_with_estimated_sigmas_beats_the_plain_fit_when_the_images_dominate()
     """A very precise arm (0.0003 mm, 1e-6 rad) and noisy images (0.05 px), 30 draws.
 
     Comparing each view's image-implied flange pose with the reported one charges the board
-    poses' own error to the arm: that estimate is > 5x the true arm sigma (18x here), and the
-    ML fit weighted with it was worse than the plain fit (0.0022 vs 0.0010 mm RMS over these
-    draws, mean chi-square 1.4) before the sigmas were re-estimated. With the variance
-    components the arm sigmas come out near the truth, the ML fit beats the plain one, and its
-    covariance predicts its error.
+    poses' own error to the arm: that estimate is > 5x the true arm sigma, and an ML fit
+    weighted with it would trust the arm too little. With the variance components the arm
+    sigmas come out near the truth, the ML fit beats the plain one, and its covariance
+    predicts its error.
     """
     r = _ml_trials(30, 0.0003, 1e-6, 0.05)
     assert np.median(r["arm_mm_initial"]) > 5 * 0.0003

@@ -337,21 +337,6 @@ def _delta(x: np.ndarray) -> np.ndarray:
     return make_transform(rotvec_to_matrix(x[:3]), x[3:])
 
 
-def _rodrigues(w: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) from rotation vectors; numpy only (the residual function
-    runs thousands of times on a few vectors, where scipy's per-call overhead dominates)."""
-    th2 = np.sum(w * w, axis=-1)[..., None, None]
-    th = np.sqrt(th2)
-    small = th2 < 1e-12
-    # sin(th)/th and (1 - cos th)/th^2, by their series below 1e-6 rad
-    a = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / np.where(small, 1.0, th))
-    b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / np.where(small, 1.0, th2))
-    K = np.zeros((*w.shape[:-1], 3, 3))
-    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
-    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
-    return np.eye(3) + a * K + b * (K @ K)
-
-
 @dataclass(frozen=True)
 class Refinement:
     """Result of :func:`refine_handeye`."""
@@ -489,11 +474,11 @@ def refine_handeye(
                     s=(sig["image_px"], sig["arm_rad"], sig["arm_mm"])) -> np.ndarray:
                 xv = x[12:].reshape(V, 6) if with_arm else np.zeros((V, 6))
                 # T_cam_board = inv(X) inv(arm) T_base_board, composed on rotations and vectors
-                Rx = X_base[:3, :3] @ _rodrigues(x[:3])
+                Rx = X_base[:3, :3] @ rotvec_to_matrix(x[:3])
                 tx = X_base[:3, :3] @ x[3:6] + X_base[:3, 3]
-                Rb = Tbb_base[:3, :3] @ _rodrigues(x[6:9])
+                Rb = Tbb_base[:3, :3] @ rotvec_to_matrix(x[6:9])
                 tb = Tbb_base[:3, :3] @ x[9:12] + Tbb_base[:3, 3]
-                RaT = np.swapaxes(R_arm @ _rodrigues(xv[:, :3]), 1, 2)
+                RaT = np.swapaxes(R_arm @ rotvec_to_matrix(xv[:, :3]), 1, 2)
                 Rc = Rx.T @ RaT @ Rb
                 tc = (RaT @ (tb - t_arm - xv[:, 3:])[:, :, None])[:, :, 0] @ Rx - tx @ Rx
                 pc = P @ np.swapaxes(Rc, 1, 2) + tc[:, None, :]
@@ -694,9 +679,10 @@ def solve_handeye(
     n_obs = pts.shape[1] * 2
     # (rms_px is the RMS of 2-D residuals: per coordinate it is rms / sqrt 2)
     # the floors lie far below any real noise; they keep exact (synthetic) data well conditioned
-    sigma_px = max(float(np.sqrt(np.mean([f.rms_px**2 for f in fits]) / 2 * n_obs / (n_obs - 6))), 1e-4)
+    sigma_px = max(float(np.sqrt(np.mean([f.rms_px**2 for f in fits]) / 2 * n_obs / (n_obs - 6))),
+                   SIGMA_FLOORS["image_px"])
     s_mm, s_rad, Tbb0 = arm_noise_estimate(X_ck, T_base_tool, Tc)
-    s_mm, s_rad = max(s_mm, 1e-5), max(s_rad, 1e-8)
+    s_mm, s_rad = max(s_mm, SIGMA_FLOORS["arm_mm"]), max(s_rad, SIGMA_FLOORS["arm_rad"])
     plain = refine_handeye(camera, board, pts, T_base_tool, X_ck, Tbb0, bias_correction=bias_correction)
     record("reprojection", plain.X)
     methods["reprojection"]["reprojection_rms_px"] = plain.rms_px
