@@ -43,11 +43,63 @@ except ImportError:  # pragma: no cover - depends on the environment
     _inflate_lib = None
 
 
+def _average4_py(raw: np.ndarray, r: int, stride: int, out: np.ndarray) -> None:
+    """Undo the Average filter (1 byte per pixel) of rows r..r+3 (r >= 1) as one wavefront.
+
+    Each row's recurrence (its left neighbour feeds the next pixel) is latency-bound; row
+    j + 1 at column x needs row j only at column x, so the four rows run skewed by one column
+    and their four independent chains overlap. The carries stay in registers: updated in the
+    order 3, 2, 1, 0, row j - 1's carry still holds the pixel above row j's.
+    """
+    s = stride + 1
+    b0 = r * s + 1
+    b1 = b0 + s
+    b2 = b1 + s
+    b3 = b2 + s
+    a0 = np.int32(0)
+    a1 = np.int32(0)
+    a2 = np.int32(0)
+    a3 = np.int32(0)
+    for t in range(stride + 3):
+        if t >= 3 and t < stride:  # all four rows inside: no bounds to test
+            a3 = (np.int32(raw[b3 + t - 3]) + ((a3 + a2) >> 1)) & 255
+            a2 = (np.int32(raw[b2 + t - 2]) + ((a2 + a1) >> 1)) & 255
+            a1 = (np.int32(raw[b1 + t - 1]) + ((a1 + a0) >> 1)) & 255
+            a0 = (np.int32(raw[b0 + t]) + ((a0 + np.int32(out[r - 1, t])) >> 1)) & 255
+            out[r + 3, t - 3] = a3
+            out[r + 2, t - 2] = a2
+            out[r + 1, t - 1] = a1
+            out[r, t] = a0
+            continue
+        if 0 <= t - 3 < stride:
+            a3 = (np.int32(raw[b3 + t - 3]) + ((a3 + a2) >> 1)) & 255
+            out[r + 3, t - 3] = a3
+        if 0 <= t - 2 < stride:
+            a2 = (np.int32(raw[b2 + t - 2]) + ((a2 + a1) >> 1)) & 255
+            out[r + 2, t - 2] = a2
+        if 0 <= t - 1 < stride:
+            a1 = (np.int32(raw[b1 + t - 1]) + ((a1 + a0) >> 1)) & 255
+            out[r + 1, t - 1] = a1
+        if t < stride:
+            a0 = (np.int32(raw[b0 + t]) + ((a0 + np.int32(out[r - 1, t])) >> 1)) & 255
+            out[r, t] = a0
+
+
+_average4 = jit(_average4_py)
+
+
 def _unfilter_py(raw: np.ndarray, h: int, stride: int, bpp: int, out: np.ndarray) -> bool:
     """PNG row unfiltering (filter types 0-4) into ``out`` (h, stride); False on a bad type."""
-    for r in range(h):
-        base = r * (stride + 1) + 1
+    s = stride + 1
+    r = 0
+    while r < h:
+        base = r * s + 1
         f = raw[base - 1]
+        if (f == 3 and bpp == 1 and r >= 1 and r + 3 < h and raw[base - 1 + s] == 3
+                and raw[base - 1 + 2 * s] == 3 and raw[base - 1 + 3 * s] == 3):
+            _average4(raw, r, stride, out)  # the simulator's frames: every row Average
+            r += 4
+            continue
         if f == 0:
             for x in range(stride):
                 out[r, x] = raw[base + x]
@@ -93,6 +145,7 @@ def _unfilter_py(raw: np.ndarray, h: int, stride: int, bpp: int, out: np.ndarray
                 out[r, x] = (np.int32(raw[base + x]) + pr) & 255
         else:
             return False
+        r += 1
     return True
 
 

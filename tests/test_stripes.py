@@ -367,7 +367,8 @@ def _png(img: np.ndarray, filters: list[int]) -> bytes:
 
 @pytest.mark.skipif(not fast_decoder_available(), reason="numba/imagecodecs not installed")
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
-@pytest.mark.parametrize("filters", [[0], [1], [2], [3], [4], [0, 1, 2, 3, 4]])
+@pytest.mark.parametrize("filters", [[0], [1], [2], [3], [4], [0, 1, 2, 3, 4],
+                                     [3, 3, 3, 0, 3, 3, 3, 3, 3, 2, 3, 3, 3, 3, 4]])
 def test_fast_png_decoder_equals_opencv(dtype, filters):
     rng = np.random.default_rng(7)
     img = rng.integers(0, np.iinfo(dtype).max, (37, 53), dtype=np.int64).astype(dtype)
