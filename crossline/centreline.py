@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from crossline.jit import jit
+
 __all__ = ["blocked_ends", "link_traces", "smooth_along", "trace_position"]
 
 
@@ -25,6 +27,75 @@ def _keys(frame: np.ndarray, laser: np.ndarray, u: np.ndarray) -> tuple[np.ndarr
     span = int(col.max() - col.min() + 3) if col.size else 1
     key = (np.asarray(frame, dtype=np.int64) * len(lasers) + lid) * span + (col - col.min() + 1)
     return key, col
+
+
+def _link_py(ks: np.ndarray, order: np.ndarray, v: np.ndarray, max_step: float, max_kink: float,
+             prev: np.ndarray) -> None:
+    """``link_traces`` on keys ``ks`` already in ``order`` (sorted by key); writes ``prev``."""
+    n = v.size
+    best = np.full(n, np.inf)
+    # the centre of key - 1 nearest in row within max_step; ties: the smaller row, then the first
+    p0 = -1  # the previous key's group order[p0:p1]
+    p1 = -1
+    i = 0
+    while i < n:
+        j = i
+        while j < n and ks[j] == ks[i]:
+            j += 1
+        if p0 >= 0 and ks[p0] == ks[i] - 1:
+            for a in range(i, j):
+                ia = order[a]
+                bd = np.inf
+                bi = -1
+                for b in range(p0, p1):
+                    ib = order[b]
+                    d = abs(v[ib] - v[ia])
+                    if d < bd or (d == bd and bi >= 0 and v[ib] < v[bi]):
+                        bd = d
+                        bi = ib
+                if bi >= 0 and bd <= max_step:
+                    prev[ia] = bi
+                    best[ia] = bd
+        p0 = i
+        p1 = j
+        i = j
+    # no fork: of two centres continuing the same one, the farther (then the later) starts a trace
+    nxt = np.full(n, -1, np.int64)
+    for i in range(n):
+        q = prev[i]
+        if q >= 0:
+            k = nxt[q]
+            if k < 0 or best[i] < best[k]:
+                if k >= 0:
+                    prev[k] = -1
+                nxt[q] = i
+            else:
+                prev[i] = -1
+    # a jump is a link whose step is out of line with the steps on both sides of it (a side
+    # without a link counts as out of line; a link with neither side is kept)
+    jump = np.zeros(n, np.bool_)
+    for i in range(n):
+        q = prev[i]
+        if q < 0:
+            continue
+        step = v[i] - v[q]
+        has_side = False
+        off_before = True
+        off_after = True
+        if prev[q] >= 0:
+            has_side = True
+            off_before = not (abs(step - (v[q] - v[prev[q]])) <= max_kink)
+        k = nxt[i]
+        if k >= 0:
+            has_side = True
+            off_after = not (abs(step - (v[k] - v[i])) <= max_kink)
+        jump[i] = has_side and off_before and off_after
+    for i in range(n):
+        if jump[i]:
+            prev[i] = -1
+
+
+_link = jit(_link_py)
 
 
 def link_traces(
@@ -49,36 +120,9 @@ def link_traces(
     if n == 0:
         return prev
     key, _ = _keys(frame, laser, u)
-    v = np.asarray(v, dtype=np.float64)
-    order = np.lexsort((v, key))
-    ks = key[order]
-    lo = np.searchsorted(ks, key - 1, side="left")
-    hi = np.searchsorted(ks, key - 1, side="right")
-    best = np.full(n, np.inf)
-    for k in range(int((hi - lo).max(initial=0))):
-        cand = lo + k
-        ok = cand < hi
-        j = order[np.where(ok, cand, 0)]
-        d = np.where(ok, np.abs(v[j] - v), np.inf)
-        better = (d < best) & (d <= max_step_px)
-        prev[better] = j[better]
-        best[better] = d[better]
-    has = np.flatnonzero(prev >= 0)
-    if has.size > 1:  # two centres continuing the same one: the farther starts a trace
-        o = has[np.lexsort((best[has], prev[has]))]
-        prev[o[1:][prev[o[1:]] == prev[o[:-1]]]] = -1
-    # a jump is a link whose step is out of line with the steps on both sides of it
-    step = np.where(prev >= 0, v - v[np.maximum(prev, 0)], np.nan)
-    nxt = np.full(n, -1, dtype=np.int64)
-    nxt[prev[prev >= 0]] = np.flatnonzero(prev >= 0)
-    before = np.where(prev >= 0, step[np.maximum(prev, 0)], np.nan)
-    after = np.where(nxt >= 0, step[np.maximum(nxt, 0)], np.nan)
-    with np.errstate(invalid="ignore"):
-        off_before = ~(np.abs(step - before) <= max_kink_px)  # NaN (no neighbour) counts as off
-        off_after = ~(np.abs(step - after) <= max_kink_px)
-    has_side = np.isfinite(before) | np.isfinite(after)
-    jump = (prev >= 0) & has_side & off_before & off_after
-    prev[jump] = -1
+    order = np.argsort(key, kind="stable")
+    _link(key[order], order, np.asarray(v, dtype=np.float64), float(max_step_px), float(max_kink_px),
+          prev)
     return prev
 
 
@@ -153,6 +197,47 @@ def blocked_ends(
     return out[0], out[1]
 
 
+def _local_quadratic_py(ks: np.ndarray, order: np.ndarray, v: np.ndarray, h: int,
+                        out: np.ndarray, ok: np.ndarray) -> None:
+    """Value at each key of the least-squares quadratic through v at keys within +-h (sorted).
+
+    Centres whose window holds fewer than three keys, or a singular one, are left as they are.
+    """
+    n = ks.size
+    lo = 0
+    for a in range(n):
+        k0 = ks[a]
+        while ks[lo] < k0 - h:
+            lo += 1
+        s0 = s1 = s2 = s3 = s4 = 0.0
+        t0 = t1 = t2 = 0.0
+        b = lo
+        while b < n and ks[b] <= k0 + h:
+            if b == lo or ks[b] != ks[b - 1]:  # one centre per key, as a column holds one
+                k = float(ks[b] - k0)
+                vk = v[order[b]]
+                s0 += 1.0
+                s1 += k
+                s2 += k * k
+                s3 += k * k * k
+                s4 += k * k * k * k
+                t0 += vk
+                t1 += vk * k
+                t2 += vk * (k * k)
+            b += 1
+        # value at k = 0 of the quadratic fit: first row of the inverse normal matrix (Cramer)
+        c00 = s2 * s4 - s3 * s3
+        c01 = s2 * s3 - s1 * s4
+        c02 = s1 * s3 - s2 * s2
+        det = s0 * c00 + s1 * c01 + s2 * c02
+        if s0 >= 3 and abs(det) > 1e-9:
+            out[order[a]] = (c00 * t0 + c01 * t1 + c02 * t2) / det
+            ok[order[a]] = True
+
+
+_local_quadratic = jit(_local_quadratic_py)
+
+
 def smooth_along(
     trace: np.ndarray, u: np.ndarray, v: np.ndarray, window: int
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -174,26 +259,7 @@ def smooth_along(
     span = int(col.max() - col.min() + 2 * h + 3) if col.size else 1
     key = trace.astype(np.int64) * span + (col - col.min() + h + 1)
     order = np.argsort(key, kind="stable")
-    ks = key[order]
-    # moments of the offsets k present in the window, and of the rows there
-    m = np.zeros((5, len(v)))
-    t = np.zeros((3, len(v)))
-    for k in range(-h, h + 1):
-        i = np.minimum(np.searchsorted(ks, key + k), max(len(ks) - 1, 0))
-        hit = (ks[i] == key + k) if len(ks) else np.zeros(len(v), bool)
-        w = hit.astype(np.float64)
-        vk = np.where(hit, v[order[i]], 0.0)
-        for p_ in range(5):
-            m[p_] += w * float(k) ** p_
-        for p_ in range(3):
-            t[p_] += w * vk * float(k) ** p_
-    # value at k = 0 of the quadratic fit: first row of the inverse normal matrix (Cramer)
-    s0, s1, s2, s3, s4 = m
-    c00 = s2 * s4 - s3 * s3
-    c01 = s2 * s3 - s1 * s4
-    c02 = s1 * s3 - s2 * s2
-    det = s0 * c00 + s1 * c01 + s2 * c02
-    ok = (s0 >= 3) & (np.abs(det) > 1e-9)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out = (c00 * t[0] + c01 * t[1] + c02 * t[2]) / det
-    return np.where(ok, out, v), ok
+    out = v.copy()
+    ok = np.zeros(len(v), dtype=bool)
+    _local_quadratic(key[order], order, v, h, out, ok)
+    return out, ok

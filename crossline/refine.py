@@ -529,7 +529,7 @@ def refine_frames(
     t1 = time.perf_counter()
     e, beta, info = solve_errors(cr, org, prior, times, huber=huber)
     C = correction_transforms(e[:, :3], e[:, 3:], org)
-    out = transform_points(C[fpos], p)
+    out = transform_points(C, p, fpos)
     shift2 = np.sum((out - p) ** 2, axis=1)
     cnt = np.bincount(fpos, minlength=F)
     frame_rms = np.sqrt(np.bincount(fpos, shift2, F) / np.maximum(cnt, 1))

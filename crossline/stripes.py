@@ -969,7 +969,7 @@ def _table(frame: int, state: str, c: dict[str, np.ndarray], du: float, dv: floa
     n = c["u"].size
     cols = {
         "frame": pa.array(np.full(n, frame, np.int64)),
-        "lasers": pa.array([state] * n, pa.string()),
+        "lasers": pa.repeat(pa.scalar(state, pa.string()), n),
         "u": pa.array(c["u"].astype(np.float64) + du),
         "v": pa.array(c["v"].astype(np.float64) + dv),
     }
@@ -1100,21 +1100,30 @@ def run_extract_stripes(
     t0 = time.perf_counter()
     noise: list[tuple[int, float, float]] = []
     paths = [sc.frame_path(f) for f in frames]
+    fit = _frame_work(extractor, params)
+
+    def work(j: int, img: np.ndarray) -> tuple[dict[str, Any], pa.Table, np.ndarray]:
+        # the table and the flag counts are made in the worker thread too: the loop below,
+        # which the workers wait on, only writes
+        c = fit(j, img)
+        flags = np.bincount(c["flags"].astype(np.uint8), minlength=256)
+        return c, _table(int(frames[j]), str(states[j]), c, win.x, win.y), flags
+
     with atomic_path(out) as tmp:
         writer = _GroupedWriter(tmp)
-        it = map_frames(paths, _frame_work(extractor, params), shape=(win.height, win.width),
-                        threads=threads, decoder=decoder)
+        it = map_frames(paths, work, shape=(win.height, win.width), threads=threads, decoder=decoder)
+        values = np.arange(256)
         try:
-            for j, c in enumerate(it):
+            for j, (c, table, hist) in enumerate(it):
                 counts["frames"] += 1
                 nc = c["u"].size
                 counts["frames_without_stripe"] += nc == 0
                 counts["centres"] += nc
                 for bit, name in FLAG_NAMES.items():
-                    counts[f"flag_{name}"] += int(np.count_nonzero(c["flags"] & bit))
+                    counts[f"flag_{name}"] += int(hist[(values & bit) != 0].sum())
                 if "_info" in c and nc:
                     noise.append((int(frames[j]), c["_info"]["noise_dn"], c["_info"]["relative_noise"]))
-                writer.add(_table(int(frames[j]), str(states[j]), c, win.x, win.y))
+                writer.add(table)
         except CrosslineError as exc:
             raise StageError(f"scan {scan}: {exc}") from exc
         if chunk[1] == 1 and counts["centres"] == 0:

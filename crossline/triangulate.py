@@ -28,6 +28,7 @@ from crossline.camera import Camera
 from crossline.centreline import blocked_ends, link_traces, smooth_along, trace_position
 from crossline.disambiguate import Disambiguator, check_pattern, reference_gap
 from crossline.errors import StageError
+from crossline.geometry import transform_points
 from crossline.laser import LaserPlanes
 from crossline.stripes import MERGED, read_stripes_meta
 
@@ -56,6 +57,7 @@ POINTS_SCHEMA = pa.schema(
     ]
 )
 _META_KEY = b"crossline"
+_LASER_NAMES = pa.array(["A", "B"], pa.string())  # a labelled point's laser, by code 0 / 1
 MIN_TRACE_COLUMNS = 3  # shorter traces are dropped with the trimmed stripe ends
 
 
@@ -74,13 +76,14 @@ def triangulate(
     return out
 
 
-def to_base(points_cam: np.ndarray, T_base_tool: np.ndarray, T_tool_cam: np.ndarray) -> np.ndarray:
-    """Base-frame points (N, 3) from camera-frame points (N, 3) and per-point T_base_tool (N, 4, 4)."""
-    T = T_base_tool @ T_tool_cam  # (N, 4, 4) or (4, 4)
-    p = np.asarray(points_cam, dtype=np.float64)
-    if T.ndim == 2:
-        return p @ T[:3, :3].T + T[:3, 3]
-    return np.einsum("nij,nj->ni", T[:, :3, :3], p) + T[:, :3, 3]
+def to_base(points_cam: np.ndarray, T_base_tool: np.ndarray, T_tool_cam: np.ndarray,
+            index: np.ndarray | None = None) -> np.ndarray:
+    """Base-frame points (N, 3) from camera-frame points (N, 3) and T_base_tool (4, 4) or (N, 4, 4).
+
+    With ``index`` (N,), ``T_base_tool`` is one pose per frame (F, 4, 4) and point i takes
+    pose ``index[i]``.
+    """
+    return transform_points(np.asarray(T_base_tool, dtype=np.float64) @ T_tool_cam, points_cam, index)
 
 
 def load_handeye(path: str | Path) -> np.ndarray:
@@ -229,11 +232,11 @@ def run_triangulate(
             lab = label[idx]
             p_cam = triangulate(cam, planes, uv, lab)
             fpos = by_number[np.searchsorted(sorted_frames, frame[idx])]  # scan position of each point
-            p_base = to_base(p_cam, sc.T_base_tool[fpos], T_tool_cam)
+            p_base = to_base(p_cam, sc.T_base_tool, T_tool_cam, fpos)
             sel = t.take(pa.array(idx))
             cols = {
                 "frame": sel.column("frame"),
-                "laser": pa.array(lab.tolist(), pa.string()),
+                "laser": _LASER_NAMES.take(pa.array((lab == "B").astype(np.int8))),
                 "lasers": sel.column("lasers"),
                 "u": sel.column("u"),
                 "v": pa.array(v_used),

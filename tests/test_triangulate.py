@@ -48,6 +48,18 @@ def test_to_base_per_point():
         np.testing.assert_allclose(out[i], exp, atol=1e-12)
 
 
+@pytest.mark.parametrize("index", [[0, 0, 1, 1, 1, 3, 4, 4], [4, 0, 1, 4, 1, 0, 3, 1], [2], []])
+def test_to_base_per_frame_index(index):
+    """One pose per frame and an index (sorted or not, frames skipped) = the per-point poses."""
+    rng = np.random.default_rng(3)
+    T = np.stack([S.T_base_tool(i, 5) for i in range(5)])
+    idx = np.array(index, dtype=np.int64)
+    p = rng.normal(size=(idx.size, 3)) * 10
+    out = to_base(p, T, S.T_TOOL_CAM, idx)
+    assert out.shape == (idx.size, 3)
+    np.testing.assert_allclose(out, to_base(p, T[idx], S.T_TOOL_CAM).reshape(-1, 3), atol=1e-12)
+
+
 # ----------------------------------------------------------------------------- stages
 
 
