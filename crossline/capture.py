@@ -34,6 +34,7 @@ __all__ = [
     "POSE_COLUMNS",
     "Capture",
     "CaptureError",
+    "FramesTable",
     "LaserView",
     "Problem",
     "Rig",
@@ -44,6 +45,7 @@ __all__ = [
     "check_capture",
     "laser_pattern",
     "open_capture",
+    "read_frames_table",
     "read_rig",
 ]
 
@@ -505,15 +507,23 @@ def _handeye(root: Path, problems: list[Problem]) -> tuple[list[Path], np.ndarra
     return used, T.reshape(-1, 4, 4)
 
 
-def _scan(root: Path, name: str, spec: ScanSpec, problems: list[Problem]) -> Scan | None:
-    d = root / "scans" / name
-    rel = f"scans/{name}/frames.csv"
-    if not (d / "frames.csv").is_file():
-        problems.append(Problem(rel, "missing: every scan needs its frames.csv"))
-        return None
+@dataclass(frozen=True)
+class FramesTable:
+    """The rows of a scan's frames.csv: frame numbers, times, laser states and arm poses."""
+
+    frames: np.ndarray  # (N,) int
+    time_s: np.ndarray  # (N,)
+    lasers: np.ndarray  # (N,) str: A | B | AB | off
+    T_base_tool: np.ndarray  # (N, 4, 4)
+    lines: np.ndarray  # (N,) line of each row in the file
+
+
+def _frames_table(path: Path, rel: str, problems: list[Problem]) -> tuple[FramesTable | None, set[int]]:
+    """Parse and check a frames.csv: the table (None if any row is faulty, each fault a problem
+    with its line) and the frame numbers its rows name."""
     n_before = len(problems)
-    rows = _read_table(d / "frames.csv", rel, FRAME_COLUMNS, problems)
-    frames, times, states, poses = [], [], [], []
+    rows = _read_table(path, rel, FRAME_COLUMNS, problems)
+    frames, times, states, poses, lines = [], [], [], [], []
     seen: dict[int, int] = {}
     last_t = -math.inf
     for lineno, row in rows:
@@ -549,30 +559,57 @@ def _scan(root: Path, name: str, spec: ScanSpec, problems: list[Problem]) -> Sca
         pose = _pose(row, lineno, rel, problems)
         if pose is None:
             continue
-        if not (d / "frames" / f"{fr:06d}.png").is_file():
-            problems.append(Problem(rel, f"frame {fr} has no image frames/{fr:06d}.png", lineno))
-            continue
         frames.append(fr)
         times.append(t)
         states.append(row["lasers"])
         poses.append(pose)
-    listed = set(seen)
+        lines.append(lineno)
+    if not rows and len(problems) == n_before:
+        problems.append(Problem(rel, "has no frames"))
+    if len(problems) > n_before:
+        return None, set(seen)
+    P = np.array(poses).reshape(-1, 7)
+    return FramesTable(np.array(frames, dtype=np.int64), np.array(times),
+                       np.array(states, dtype=object),
+                       transform_from_pose(P[:, :3], P[:, 3:]).reshape(-1, 4, 4),
+                       np.array(lines, dtype=np.int64)), set(seen)
+
+
+def read_frames_table(path: str | Path) -> FramesTable:
+    """A scan's frames.csv on its own (its images are not looked at); CaptureError lists each fault."""
+    path = Path(path)
+    rel = "/".join(path.parts[-3:]) if len(path.parts) >= 3 else str(path)
+    problems: list[Problem] = []
+    if not path.is_file():
+        raise CaptureError(path.parent, [Problem(rel, "missing: every scan needs its frames.csv")])
+    table, _ = _frames_table(path, rel, problems)
+    if table is None:
+        raise CaptureError(path.parent, problems)
+    return table
+
+
+def _scan(root: Path, name: str, spec: ScanSpec, problems: list[Problem]) -> Scan | None:
+    d = root / "scans" / name
+    rel = f"scans/{name}/frames.csv"
+    if not (d / "frames.csv").is_file():
+        problems.append(Problem(rel, "missing: every scan needs its frames.csv"))
+        return None
+    n_before = len(problems)
+    table, listed = _frames_table(d / "frames.csv", rel, problems)
+    if table is not None:
+        for fr, lineno in zip(table.frames.tolist(), table.lines.tolist(), strict=True):
+            if not (d / "frames" / f"{fr:06d}.png").is_file():
+                problems.append(Problem(rel, f"frame {fr} has no image frames/{fr:06d}.png", lineno))
     for p in sorted((d / "frames").glob("*.png")) if (d / "frames").is_dir() else []:
         m = re.fullmatch(r"(\d{6,})\.png", p.name)
         if not m:
             problems.append(Problem(_rel(root, p), "name must be the frame number in 6 digits, "
                                                    "e.g. 000123.png"))
-        elif rows and int(m.group(1)) not in listed:  # an unreadable table lists no frame
+        elif listed and int(m.group(1)) not in listed:  # an unreadable table lists no frame
             problems.append(Problem(_rel(root, p), f"has no row in {rel}"))
-    if not rows and len(problems) == n_before:
-        problems.append(Problem(rel, "has no frames"))
-    if len(problems) > n_before:
+    if len(problems) > n_before or table is None:
         return None
-    P = np.array(poses).reshape(-1, 7)
-    return Scan(
-        name, d, spec, np.array(frames, dtype=np.int64), np.array(times),
-        np.array(states, dtype=object), transform_from_pose(P[:, :3], P[:, 3:]).reshape(-1, 4, 4)
-    )
+    return Scan(name, d, spec, table.frames, table.time_s, table.lasers, table.T_base_tool)
 
 
 def open_capture(root: str | Path) -> Capture:

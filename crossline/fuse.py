@@ -554,29 +554,13 @@ def run_fuse(
 
 def _read_frames(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Frame numbers, times (s) and reported flange positions (mm) of a scan's frames.csv."""
-    import pandas as pd
+    from crossline.capture import read_frames_table
 
     path = Path(path)
     if not path.is_file():
         raise StageError(f"{path}: frames table not found (the scan's frames.csv)")
-    try:
-        df = pd.read_csv(path)
-    except Exception as exc:  # pandas raises several types for broken CSV
-        raise StageError(f"{path}: cannot be read as CSV ({exc})") from exc
-    df.columns = [str(c).strip() for c in df.columns]
-    missing = [c for c in ("frame", "time_s", "x", "y", "z") if c not in df.columns]
-    if missing:
-        raise StageError(f"{path}: missing column(s) {missing}; expected frame,time_s,lasers,x,y,z,"
-                         "qw,qx,qy,qz")
-    try:
-        fr = df["frame"].to_numpy(np.int64)
-        t = df["time_s"].to_numpy(np.float64)
-        xyz = df[["x", "y", "z"]].to_numpy(np.float64)
-    except (ValueError, TypeError) as exc:
-        raise StageError(f"{path}: frame, time_s, x, y, z must be numbers ({exc})") from exc
-    if not (np.isfinite(t).all() and np.isfinite(xyz).all()):
-        raise StageError(f"{path}: time_s and x, y, z must be finite")
-    return fr, t, xyz
+    t = read_frames_table(path)  # the capture's own checks: each faulty row named
+    return t.frames, t.time_s, t.T_base_tool[:, :3, 3]
 
 
 def load_stats(path: str | Path) -> dict[str, Any] | None:

@@ -11,6 +11,7 @@ import pandas as pd
 import pytest
 
 from crossline.atomic import write_parquet
+from crossline.capture import CaptureError
 from crossline.errors import StageError
 from crossline.fuse import (
     camera_centres,
@@ -244,6 +245,15 @@ def test_run_fuse_refinement_needs_what_it_names(posed_plate, tmp_path):
         run_fuse(pq, tmp_path / "x.ply", refine_poses=True, arm_precision_mm=0.0)
     with pytest.raises(StageError, match="frames table not found"):
         run_fuse(pq, tmp_path / "x.ply", refine_poses=True, frames=tmp_path / "none.csv")
+    # a faulty frames table is read by the capture's own parser: every faulty row named
+    rows = pd.read_csv(posed_plate / "frames.csv")
+    rows["time_s"] = rows["time_s"].astype(object)
+    rows.loc[2, "time_s"] = "soon"
+    rows.loc[5, "qw"] = 3.0
+    rows.to_csv(bad, index=False)
+    with pytest.raises(CaptureError, match=r"(?s)line 4: 'time_s' = 'soon' is not a number.*"
+                                           r"line 7: quaternion .* has length"):
+        run_fuse(pq, tmp_path / "x.ply", refine_poses=True, frames=bad)
     assert not (tmp_path / "x.ply").exists()
     # without the frames table it still runs: independent per-frame prior, camera centres
     c = run_fuse(pq, tmp_path / "y.ply", refine_poses=True)
