@@ -1,0 +1,168 @@
+"""Why the pose refinement shrinks the compact rig's sphere: the refinement on perfect poses.
+
+    python benchmarks/bench_refine_bias.py                    # compact ball (bench_refine's cache)
+    python benchmarks/bench_refine_bias.py --capture demo --scan ball
+
+Needs the points of ``bench_refine.py``'s private workflow run (its cache,
+benchmarks/.cache/refine/wd-<capture>/); run that first. The scan's stripe centres (real
+rendered pixels) are triangulated with the TRUE camera and laser planes and carried to the
+base frame with the TRUE poses and hand-eye: nothing is left for the refinement to correct,
+so whatever it does comes from the stripes. Printed (µm):
+
+- the sphere's size and form error with these points, and after the refinement with the
+  workflow's prior (``fuse`` section of config.yaml);
+- the same refinement with the crossings' gaps replaced by white noise of the measured
+  level (``--noise-draws`` draws): what noise alone does to the size;
+- the gaps binned by the crossing's polar angle on the sphere and by the frame distance
+  between its A and B stripes (structure a white-noise model does not have);
+- each laser's radial error on the sphere by polar angle and azimuth quadrant, and the
+  refinement's radial shift per frame along the sweep.
+
+Results: benchmarks/results/refine_bias.txt.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+from bench_refine import CACHE, capture_path, true_points  # noqa: E402
+
+from crossline import metrology as mt  # noqa: E402
+from crossline.camera import Camera  # noqa: E402
+from crossline.capture import open_capture  # noqa: E402
+from crossline.fuse import camera_centres  # noqa: E402
+from crossline.geometry import transform_from_pose, transform_points  # noqa: E402
+from crossline.laser import LaserPlanes  # noqa: E402
+from crossline.refine import ArmPrior, correction_transforms, refine_frames, solve_errors  # noqa: E402
+from crossline.triangulate import triangulate  # noqa: E402
+
+RESULTS = REPO / "benchmarks" / "results"
+LINES: list[str] = []
+
+
+def say(text: str = "") -> None:
+    print(text, flush=True)
+    LINES.append(text)
+
+
+def binned(label: str, x: np.ndarray, y: np.ndarray, bins: int = 5) -> None:
+    q = np.quantile(x, np.linspace(0, 1, bins + 1))
+    b = np.clip(np.searchsorted(q, x, side="right") - 1, 0, bins - 1)
+    say(f"  {label:28s} " + "  ".join(f"[{q[i]:.0f}, {q[i + 1]:.0f}] {y[b == i].mean():+.2f}"
+                                       for i in range(bins)))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--capture", default="compact", help="demo or compact (bench_refine's names)")
+    ap.add_argument("--scan", default="ball")
+    ap.add_argument("--noise-draws", type=int, default=6)
+    a = ap.parse_args(argv)
+    cap = capture_path(a.capture)
+    interim = CACHE / f"wd-{a.capture}" / "data" / "interim" / a.capture
+    points_file = interim / "points" / f"{a.scan}.parquet"
+    if cap is None or not points_file.is_file():
+        say(f"no points at {points_file}: run benchmarks/bench_refine.py --captures {a.capture} first")
+        return 1
+    truth = json.loads((cap / "truth.json").read_text())
+    spec = truth["scans"][a.scan]
+    if "diameter" not in spec:
+        say(f"scan {a.scan} is not a sphere")
+        return 1
+    centre, R = np.array(spec["center_base"], dtype=float), 0.5 * float(spec["diameter"])
+    rig = open_capture(cap).rig
+    cam = Camera(np.array(truth["camera"]["K"]), np.array(truth["camera"]["dist"]),
+                 (rig.sensor.width, rig.sensor.height))
+    df = pd.read_parquet(points_file)
+    laser = df["laser"].astype(str).to_numpy()
+    df[["x_cam", "y_cam", "z_cam"]] = triangulate(cam, LaserPlanes.from_dict(truth["lasers"]),
+                                                  df[["u", "v"]].to_numpy(), laser)
+    X = np.array(truth["T_tool_cam"])
+    pt = true_points(cap, a.scan, df, X)
+    tp = pd.read_parquet(cap / spec["poses"]).sort_values("frame")
+    Tt = transform_from_pose(tp[["x", "y", "z"]].to_numpy(), tp[["qw", "qx", "qy", "qz"]].to_numpy())
+    fr = df["frame"].to_numpy()
+    lab = np.where(laser == "A", 1, 2)
+    frames, views = camera_centres(fr, df[["x_cam", "y_cam", "z_cam"]].to_numpy(), pt)
+    pos = np.searchsorted(tp["frame"].to_numpy(), frames)
+    times, origins = tp["time_s"].to_numpy()[pos], Tt[pos, :3, 3]
+    fcfg = yaml.safe_load((REPO / "config.yaml").read_text())["fuse"]
+    rad = fcfg.get("arm_precision_rad", "auto")
+    prior = ArmPrior.from_precision(float(fcfg["arm_precision_mm"]),
+                                    None if rad in (None, "auto") else float(rad),
+                                    smooth_fraction=float(fcfg["arm_smooth_fraction"]),
+                                    corr_time_s=float(fcfg["arm_corr_time_s"]))
+
+    def sphere(P: np.ndarray) -> tuple[float, float]:
+        f = mt.measure_sphere(P, 2 * R, ransac_threshold_mm=0.2, trim_sigma=5.0, seed=0).figures()
+        return 1e3 * f["size_error_mm"], 1e3 * f["form_error_mm"]
+
+    ref = refine_frames(fr, lab, pt, views, prior, frames=frames, times=times, origins=origins, threads=2)
+    cr = ref.crossings
+    say(f"=== {a.capture}/{a.scan}: TRUE camera, laser planes, hand-eye and poses; {len(pt)} points, "
+        f"{len(cr.gap)} crossings; prior {prior.sigma_mm * 1e3:.2f} µm, tau {prior.corr_time_s} s")
+    s0, f0 = sphere(pt)
+    s1, f1 = sphere(ref.points)
+    say(f"  size error {s0:+.2f} µm, form {f0:.2f} µm; after the refinement: size {s1:+.2f}, form {f1:.2f}")
+    scale = ref.diagnostics["noise_scale"]
+    fpos = np.searchsorted(frames, fr)
+    rng = np.random.default_rng(0)
+    sizes = []
+    for _ in range(a.noise_draws):
+        white = dataclasses.replace(cr, gap=rng.standard_normal(len(cr.gap)) * cr.sigma * scale)
+        e, _, _ = solve_errors(white, origins, prior, times)
+        C = correction_transforms(e[:, :3], e[:, 3:], origins)
+        sizes.append(sphere(transform_points(C, pt, fpos))[0])
+    say(f"  white-noise gaps (sd {1e3 * np.median(cr.sigma) * scale:.2f} µm), {a.noise_draws} draws: size "
+        f"{np.mean(sizes):+.2f} ± {np.std(sizes):.2f} µm (change {np.mean(sizes) - s0:+.2f})")
+    r = np.linalg.norm(cr.x - centre, axis=1)
+    on = np.abs(r - R) < 0.1
+    polar = np.degrees(np.arccos(np.clip((cr.x[:, 2] - centre[2]) / r, -1, 1)))
+    say(f"  gaps on the sphere (A minus B along the normal, µm; mean {1e3 * cr.gap[on].mean():+.2f}):")
+    binned("by polar angle (deg)", polar[on], 1e3 * cr.gap[on])
+    binned("by frame of A minus frame of B", (frames[cr.frame_a] - frames[cr.frame_b])[on].astype(float),
+           1e3 * cr.gap[on])
+    q = pt - centre
+    rr = np.linalg.norm(q, axis=1)
+    pol = np.degrees(np.arccos(np.clip(q[:, 2] / rr, -1, 1)))
+    az = np.degrees(np.arctan2(q[:, 1], q[:, 0]))
+    radial = 1e3 * (rr - R)
+    near = np.abs(radial) < 50
+    say("  radial error of each laser's points (µm), by polar angle, and per azimuth quadrant "
+        "[-180, -90) [-90, 0) [0, 90) [90, 180):")
+    for code, name in ((1, "A"), (2, "B")):
+        m = near & (lab == code)
+        for lo, hi in ((0, 15), (15, 30), (30, 45), (45, 60), (60, 80)):
+            mm = m & (pol >= lo) & (pol < hi)
+            quad = []
+            for q0 in (-180, -90, 0, 90):
+                sel = mm & (az >= q0) & (az < q0 + 90)
+                quad.append(f"{radial[sel].mean():+6.2f}" if sel.sum() > 50 else f"{'-':>6s}")
+            say(f"    {name} polar {lo:2d}-{hi:2d}: {radial[mm].mean():+6.2f} (n {mm.sum():5d})  "
+                + " ".join(quad))
+    shift = 1e3 * (np.linalg.norm(ref.points - centre, axis=1) - rr)
+    F = len(frames)
+    cnt = np.bincount(fpos[near], minlength=F)
+    per = np.bincount(fpos[near], shift[near], F) / np.maximum(cnt, 1)
+    k = np.flatnonzero(cnt > 50)
+    say("  the refinement's mean radial shift per frame (µm), every 10th frame with points: "
+        + " ".join(f"{frames[i]}:{per[i]:+.1f}" for i in k[::10]))
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "refine_bias.txt").write_text("\n".join(LINES) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
