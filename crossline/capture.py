@@ -518,10 +518,12 @@ class FramesTable:
     lines: np.ndarray  # (N,) line of each row in the file
 
 
-def _frames_table(path: Path, rel: str, problems: list[Problem]) -> tuple[FramesTable | None, set[int]]:
-    """Parse and check a frames.csv: the table (None if any row is faulty, each fault a problem
-    with its line) and the frame numbers its rows name."""
-    n_before = len(problems)
+def _frames_table(
+    path: Path, rel: str, problems: list[Problem], images: Path | None = None
+) -> tuple[FramesTable, set[int], bool]:
+    """Parse and check a frames.csv, each fault a problem with its line (and, with ``images``,
+    a row whose frames/<frame>.png is not there). Returns the table of the valid rows, the
+    frame numbers the rows name, and whether the file has any row."""
     rows = _read_table(path, rel, FRAME_COLUMNS, problems)
     frames, times, states, poses, lines = [], [], [], [], []
     seen: dict[int, int] = {}
@@ -559,32 +561,35 @@ def _frames_table(path: Path, rel: str, problems: list[Problem]) -> tuple[Frames
         pose = _pose(row, lineno, rel, problems)
         if pose is None:
             continue
+        if images is not None and not (images / f"{fr:06d}.png").is_file():
+            problems.append(Problem(rel, f"frame {fr} has no image frames/{fr:06d}.png", lineno))
+            continue
         frames.append(fr)
         times.append(t)
         states.append(row["lasers"])
         poses.append(pose)
         lines.append(lineno)
-    if not rows and len(problems) == n_before:
-        problems.append(Problem(rel, "has no frames"))
-    if len(problems) > n_before:
-        return None, set(seen)
     P = np.array(poses).reshape(-1, 7)
     return FramesTable(np.array(frames, dtype=np.int64), np.array(times),
                        np.array(states, dtype=object),
                        transform_from_pose(P[:, :3], P[:, 3:]).reshape(-1, 4, 4),
-                       np.array(lines, dtype=np.int64)), set(seen)
+                       np.array(lines, dtype=np.int64)), set(seen), bool(rows)
 
 
 def read_frames_table(path: str | Path) -> FramesTable:
     """A scan's frames.csv on its own (its images are not looked at); CaptureError lists each fault."""
     path = Path(path)
-    rel = "/".join(path.parts[-3:]) if len(path.parts) >= 3 else str(path)
+    # named as in a capture (scans/<scan>/frames.csv under the capture folder) where it is one
+    root = path.parents[2] if len(path.parents) > 2 and path.parent.parent.name == "scans" else path.parent
+    rel = path.relative_to(root).as_posix()
     problems: list[Problem] = []
     if not path.is_file():
-        raise CaptureError(path.parent, [Problem(rel, "missing: every scan needs its frames.csv")])
-    table, _ = _frames_table(path, rel, problems)
-    if table is None:
-        raise CaptureError(path.parent, problems)
+        raise CaptureError(root, [Problem(rel, "missing: every scan needs its frames.csv")])
+    table, _, has_rows = _frames_table(path, rel, problems)
+    if not has_rows and not problems:
+        problems.append(Problem(rel, "has no frames"))
+    if problems:
+        raise CaptureError(root, problems)
     return table
 
 
@@ -595,19 +600,17 @@ def _scan(root: Path, name: str, spec: ScanSpec, problems: list[Problem]) -> Sca
         problems.append(Problem(rel, "missing: every scan needs its frames.csv"))
         return None
     n_before = len(problems)
-    table, listed = _frames_table(d / "frames.csv", rel, problems)
-    if table is not None:
-        for fr, lineno in zip(table.frames.tolist(), table.lines.tolist(), strict=True):
-            if not (d / "frames" / f"{fr:06d}.png").is_file():
-                problems.append(Problem(rel, f"frame {fr} has no image frames/{fr:06d}.png", lineno))
+    table, listed, has_rows = _frames_table(d / "frames.csv", rel, problems, d / "frames")
     for p in sorted((d / "frames").glob("*.png")) if (d / "frames").is_dir() else []:
         m = re.fullmatch(r"(\d{6,})\.png", p.name)
         if not m:
             problems.append(Problem(_rel(root, p), "name must be the frame number in 6 digits, "
                                                    "e.g. 000123.png"))
-        elif listed and int(m.group(1)) not in listed:  # an unreadable table lists no frame
+        elif has_rows and int(m.group(1)) not in listed:  # an unreadable table lists no frame
             problems.append(Problem(_rel(root, p), f"has no row in {rel}"))
-    if len(problems) > n_before or table is None:
+    if not has_rows and len(problems) == n_before:
+        problems.append(Problem(rel, "has no frames"))
+    if len(problems) > n_before:
         return None
     return Scan(name, d, spec, table.frames, table.time_s, table.lasers, table.T_base_tool)
 

@@ -98,13 +98,16 @@ def transform_points(T: np.ndarray, p: np.ndarray, index: np.ndarray | None = No
     """Apply a transform (4, 4) or per-point transforms (N, 4, 4) to points (N, 3).
 
     With ``index`` (N,), ``T`` holds one transform per frame (F, 4, 4) and point i is moved by
-    ``T[index[i]]``: the same as ``transform_points(T[index], p)``, frame by frame, without
-    an (N, 4, 4) array (four times faster on scan-sized inputs).
+    ``T[index[i]]``: ``transform_points(T[index], p)`` up to rounding (the last bit), frame
+    by frame, without an (N, 4, 4) array.
     """
     T = np.asarray(T, dtype=np.float64)
     p = np.asarray(p, dtype=np.float64)
     if index is not None:
         idx = np.asarray(index, dtype=np.int64)
+        if T.ndim != 3 or T.shape[1:] != (4, 4) or idx.ndim != 1 or p.shape != (idx.size, 3):
+            raise ValueError(f"with an index, T must be (F, 4, 4), index (N,) and p (N, 3); got "
+                             f"T {T.shape}, index {idx.shape}, p {p.shape}")
         in_order = idx.size < 2 or bool(np.all(idx[1:] >= idx[:-1]))
         order = None if in_order else np.argsort(idx, kind="stable")
         s = idx if order is None else idx[order]

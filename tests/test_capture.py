@@ -219,6 +219,32 @@ def test_row_without_image(capture: Path) -> None:
     assert f"{FRAMES}, line 5: frame 3 has no image frames/000003.png" in problems_of(capture)
 
 
+def test_row_fault_and_missing_image_both_listed(capture: Path) -> None:
+    """A faulty row does not hide another row's missing image (every problem is listed)."""
+    lines = (capture / FRAMES).read_text().splitlines()
+    lines[3] = "two" + lines[3][1:]
+    (capture / FRAMES).write_text("\n".join(lines) + "\n")
+    (capture / "scans/plate/frames/000003.png").unlink()
+    problems = problems_of(capture)
+    assert f"{FRAMES}, line 4: 'frame' = 'two' is not an integer" in problems
+    assert f"{FRAMES}, line 5: frame 3 has no image frames/000003.png" in problems
+
+
+def test_read_frames_table_alone(capture: Path) -> None:
+    """The frames table on its own (the fuse stage's reader): the rows, or each fault named."""
+    from crossline.capture import CaptureError, read_frames_table
+
+    t = read_frames_table(capture / FRAMES)
+    sc = open_capture(capture).scans["plate"]
+    assert np.array_equal(t.frames, sc.frames) and np.allclose(t.T_base_tool, sc.T_base_tool)
+    lines = (capture / FRAMES).read_text().splitlines()
+    lines[3] = "two" + lines[3][1:]
+    (capture / FRAMES).write_text("\n".join(lines) + "\n")
+    with pytest.raises(CaptureError, match=f"{FRAMES}, line 4: 'frame' = 'two'") as e:
+        read_frames_table(capture / FRAMES)
+    assert str(e.value).startswith(f"capture {capture}:")
+
+
 def test_image_without_row(capture: Path) -> None:
     edit_csv_line(capture / FRAMES, 7, None)
     assert f"scans/plate/frames/000005.png: has no row in {FRAMES}" in problems_of(capture)

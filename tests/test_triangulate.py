@@ -58,6 +58,8 @@ def test_to_base_per_frame_index(index):
     out = to_base(p, T, S.T_TOOL_CAM, idx)
     assert out.shape == (idx.size, 3)
     np.testing.assert_allclose(out, to_base(p, T[idx], S.T_TOOL_CAM).reshape(-1, 3), atol=1e-12)
+    with pytest.raises(ValueError, match="index"):  # one index per point, or nothing moves
+        to_base(np.zeros((idx.size + 1, 3)), T, S.T_TOOL_CAM, idx)
 
 
 # ----------------------------------------------------------------------------- stages
