@@ -170,8 +170,9 @@ def _decode_cv2(data: bytes, path: str | Path) -> np.ndarray:
     return img
 
 
-def _decode_fast(data: bytes, path: str | Path) -> np.ndarray | None:
-    """Decode a plain grey PNG; None if it is of a kind left to OpenCV."""
+def _decode_fast(data: bytes, path: str | Path, transposed: bool = False) -> np.ndarray | None:
+    """Decode a plain grey PNG (``transposed``: 8-bit ones as (width, height)); None if it is
+    of a kind left to OpenCV."""
     if not data.startswith(_SIGNATURE) or len(data) < 33:
         return None
     length, ctype = struct.unpack(">I4s", data[8:16])
@@ -210,50 +211,63 @@ def _decode_fast(data: bytes, path: str | Path) -> np.ndarray | None:
         raise ImageError(f"{path}: corrupt PNG image data ({exc})") from exc
     if len(raw) != size:
         raise ImageError(f"{path}: corrupt PNG (image data of {len(raw)} bytes, expected {size})")
-    out = np.empty((h, stride), np.uint8)
-    if not _unfilter(np.frombuffer(raw, np.uint8), h, stride, bpp, out):
+    # transposed, the rows are undone straight into the columns of a (width, height) array
+    # (the kernel writes through a transposed view): cheaper than a transpose afterwards
+    out = np.empty((stride, h) if transposed and depth == 8 else (h, stride), np.uint8)
+    rows = out.T if transposed and depth == 8 else out
+    if not _unfilter(np.frombuffer(raw, np.uint8), h, stride, bpp, rows):
         raise ImageError(f"{path}: corrupt PNG (unknown row filter type)")
     if depth == 16:
-        return out.view(">u2").astype(np.uint16)
+        img = out.view(">u2").astype(np.uint16)
+        return np.ascontiguousarray(img.T) if transposed else img
     return out
 
 
 DECODERS = ("auto", "fast", "opencv")
 
 
-def decode_png(data: bytes, path: str | Path = "<bytes>", decoder: str = "auto") -> np.ndarray:
+def decode_png(data: bytes, path: str | Path = "<bytes>", decoder: str = "auto",
+               transposed: bool = False) -> np.ndarray:
     """Decode a grey 8/16-bit PNG's bytes to a (height, width) uint8/uint16 array.
 
     ``decoder``: ``fast`` (libdeflate + numba, see module doc), ``opencv`` (``cv2.imdecode``)
-    or ``auto`` (fast when available). Errors name ``path``.
+    or ``auto`` (fast when available). ``transposed`` returns the image transposed, a
+    C-contiguous (width, height) array (each image column contiguous, as the stripe
+    extractors scan it), made without a separate transpose by the fast decoder. Errors
+    name ``path``.
     """
     if decoder not in DECODERS:
         raise ValueError(f"decoder must be one of {DECODERS}, got {decoder!r}")
     if decoder != "opencv" and fast_decoder_available():
-        img = _decode_fast(data, path)
+        img = _decode_fast(data, path, transposed)
         if img is not None:
             return img
     elif decoder == "fast":
         raise RuntimeError("the fast PNG decoder needs the packages numba and imagecodecs")
-    return _decode_cv2(data, path)
+    img = _decode_cv2(data, path)
+    return np.ascontiguousarray(cv2.transpose(img) if img.ndim == 2 else img.swapaxes(0, 1)) \
+        if transposed else img
 
 
 def read_frame(
-    path: str | Path, shape: tuple[int, int] | None = None, decoder: str = "auto"
+    path: str | Path, shape: tuple[int, int] | None = None, decoder: str = "auto",
+    transposed: bool = False,
 ) -> np.ndarray:
-    """Read and decode one grey frame; ``shape`` (height, width) is checked if given."""
+    """Read and decode one grey frame; ``shape`` (height, width) is checked if given.
+
+    ``transposed``: return it as (width, height), see :func:`decode_png`.
+    """
     path = Path(path)
     try:
         data = path.read_bytes()
     except OSError as exc:
         raise ImageError(f"{path}: cannot be read ({exc.strerror})") from exc
-    img = decode_png(data, path, decoder)
+    img = decode_png(data, path, decoder, transposed)
     if img.ndim != 2:
         raise ImageError(f"{path}: expected a single-channel grey image, got shape {img.shape}")
-    if shape is not None and img.shape != tuple(shape):
-        raise ImageError(
-            f"{path}: image is {img.shape[1]}x{img.shape[0]} px, expected {shape[1]}x{shape[0]} px"
-        )
+    h, w = img.shape[::-1] if transposed else img.shape
+    if shape is not None and (h, w) != tuple(shape):
+        raise ImageError(f"{path}: image is {w}x{h} px, expected {shape[1]}x{shape[0]} px")
     return img
 
 
@@ -265,8 +279,11 @@ def map_frames(
     threads: int = 1,
     in_flight: int | None = None,
     decoder: str = "auto",
+    transposed: bool = False,
 ) -> Iterator[T]:
     """Yield ``fn(i, image)`` for the i-th frame file, in order, reading each file once.
+
+    With ``transposed``, ``image`` is the frame as (width, height) (:func:`decode_png`).
 
     Reading, decoding and ``fn`` run together in ``threads`` worker threads (decoding and
     OpenCV/numpy kernels release the GIL); at most ``in_flight`` frames (default 2 per
@@ -276,7 +293,7 @@ def map_frames(
     in_flight = max(1, in_flight or 2 * threads)
 
     def work(i: int, p: str | Path) -> T:
-        return fn(i, read_frame(p, shape, decoder))
+        return fn(i, read_frame(p, shape, decoder, transposed))
 
     paths = list(paths)
     if threads == 1:

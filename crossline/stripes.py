@@ -403,6 +403,13 @@ def _grey_windows_numpy(flat, H, col, r0, r1, pad, bg_pixels, full):
 BACKENDS = ("auto", "numba", "numpy")
 
 
+def _columns(img: np.ndarray, transposed: bool) -> np.ndarray:
+    """The frame with each image column contiguous: (width, height), C order."""
+    if transposed:
+        return np.ascontiguousarray(img)
+    return np.ascontiguousarray(cv2.transpose(img))
+
+
 def _use_numba(backend: str) -> bool:
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
@@ -418,18 +425,21 @@ def grey_centre(
     max_width: float = 30.0,
     pad: int = 2,
     backend: str = "auto",
+    transposed: bool = False,
 ) -> dict[str, np.ndarray]:
     """Grey-centre (eq. 9) of every stripe segment of every column of a grey frame.
 
     ``threshold`` is a fraction of full scale; ``min_width``/``max_width`` bound a run's
     length along the column (px); ``pad`` is how far the window reaches beyond the run.
     ``backend``: ``numba`` (compiled kernels), ``numpy`` (vectorised) or ``auto`` (numba if
-    installed); both give the same centres. Returns a centre table (module doc) in
-    frame-local pixels, sorted by (u, v).
+    installed); both give the same centres. ``transposed``: ``img`` is the frame as
+    (width, height), e.g. from ``read_frame(..., transposed=True)`` (same centres, no
+    transpose here). Returns a centre table (module doc) in frame-local pixels, sorted by
+    (u, v).
     """
     full = full_scale(img.dtype)
     thr = threshold * full
-    imT = np.ascontiguousarray(cv2.transpose(img))
+    imT = _columns(img, transposed)
     W, H = imT.shape
     flat = imT.reshape(-1)
     nb = _use_numba(backend)
@@ -667,6 +677,7 @@ def gaussian(
     relative_noise: float | None = None,
     iterations: int = 10,
     return_info: bool = False,
+    transposed: bool = False,
 ) -> dict[str, np.ndarray] | tuple[dict[str, np.ndarray], dict[str, float]]:
     """Weighted least-squares Gaussian profile of every stripe segment of every column.
 
@@ -683,10 +694,11 @@ def gaussian(
     Returns a centre table (module doc) in frame-local pixels, sorted by (u, v)
     (``strength``: the fitted profile's integral, ``width_n``: its FWHM across the stripe),
     and with ``return_info`` also ``{"noise_dn": sigma_n, "relative_noise": r}``.
+    ``transposed``: ``img`` is the frame as (width, height), as for :func:`grey_centre`.
     """
     full = full_scale(img.dtype)
     thr = threshold * full
-    imT = np.ascontiguousarray(cv2.transpose(img))
+    imT = _columns(img, transposed)
     W, H = imT.shape
     flat = imT.reshape(-1)
     col, r0, r1 = _runs_nb(np.flatnonzero(imT > _int_threshold(thr, imT.dtype)), H, float(min_width))
@@ -1026,21 +1038,28 @@ class _GroupedWriter:
 
 
 def _frame_work(extractor: str, params: dict[str, Any]):
+    """The per-frame function of the stage, and whether it takes frames transposed."""
     if extractor == "gaussian":
         kw = {"threshold": params["threshold"], "min_width": params["min_width"],
               "max_width": params["max_width"], "pad": params["fit_pad"],
               "relative_noise": params["relative_noise"]}
 
-        def fit(i: int, img: np.ndarray) -> dict[str, Any]:
-            c, info = gaussian(img, **kw, return_info=True)
+        def fit(i: int, imT: np.ndarray) -> dict[str, Any]:
+            c, info = gaussian(imT, **kw, return_info=True, transposed=True)
             return {**c, "_info": info}
 
-        return fit
+        return fit, True
+    if extractor == "grey_centre":
+        def grey(i: int, imT: np.ndarray) -> dict[str, np.ndarray]:
+            return grey_centre(imT, params["threshold"], params["min_width"], params["max_width"],
+                               params["pad"], transposed=True)
 
-    def fn(i: int, img: np.ndarray) -> dict[str, np.ndarray]:
+        return grey, True
+
+    def fn(i: int, img: np.ndarray) -> dict[str, np.ndarray]:  # Steger smooths the image itself
         return extract(img, extractor, **params)
 
-    return fn
+    return fn, False
 
 
 def run_extract_stripes(
@@ -1100,7 +1119,7 @@ def run_extract_stripes(
     t0 = time.perf_counter()
     noise: list[tuple[int, float, float]] = []
     paths = [sc.frame_path(f) for f in frames]
-    fit = _frame_work(extractor, params)
+    fit, transposed = _frame_work(extractor, params)
 
     def work(j: int, img: np.ndarray) -> tuple[dict[str, Any], pa.Table, np.ndarray]:
         # the table and the flag counts are made in the worker thread too: the loop below,
@@ -1111,7 +1130,8 @@ def run_extract_stripes(
 
     with atomic_path(out) as tmp:
         writer = _GroupedWriter(tmp)
-        it = map_frames(paths, work, shape=(win.height, win.width), threads=threads, decoder=decoder)
+        it = map_frames(paths, work, shape=(win.height, win.width), threads=threads, decoder=decoder,
+                        transposed=transposed)
         values = np.arange(256)
         try:
             for j, (c, table, hist) in enumerate(it):

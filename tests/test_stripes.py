@@ -377,6 +377,33 @@ def test_fast_png_decoder_equals_opencv(dtype, filters):
     ref = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     np.testing.assert_array_equal(ref, img)
     np.testing.assert_array_equal(decode_png(data, "x.png", "fast"), img)
+    # transposed: the rows undone straight into the columns (8 bit), or transposed after
+    for decoder in ("fast", "opencv"):
+        t = decode_png(data, "x.png", decoder, transposed=True)
+        assert t.flags.c_contiguous and t.dtype == img.dtype
+        np.testing.assert_array_equal(t, img.T)
+
+
+def test_transposed_frames_give_the_same_centres(tmp_path):
+    """The stage's path (frames decoded transposed, extractors told so) = the plain one."""
+    rng = np.random.default_rng(11)
+    H, W = 120, 301
+    u = np.arange(W)
+    rows = np.arange(H)[:, None]
+    img = 10 + 180 * np.exp(-0.5 * ((rows - (40 + 0.2 * u)) / 1.6) ** 2) \
+        + 150 * np.exp(-0.5 * ((rows - (100 - 0.15 * u)) / 1.4) ** 2)
+    img = np.clip(img * (1 + 0.1 * rng.standard_normal(img.shape)), 0, 255).astype(np.uint8)
+    path = tmp_path / "f.png"
+    path.write_bytes(_png(img, [3]))
+    imT = read_frame(path, (H, W), transposed=True)
+    assert imT.shape == (W, H)
+    with pytest.raises(ImageError, match=f"expected {W + 1}x{H} px"):
+        read_frame(path, (H, W + 1), transposed=True)
+    for a, b in ((gaussian(img), gaussian(imT, transposed=True)),
+                 (grey_centre(img), grey_centre(imT, transposed=True))):
+        assert a.keys() == b.keys() and a["u"].size > 400
+        for k in a:
+            np.testing.assert_array_equal(a[k], b[k])
 
 
 def test_decoders_agree_on_opencv_png():
