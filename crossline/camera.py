@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from crossline.atomic import write_json
+from crossline.jit import jit
 
 __all__ = ["Camera", "distort_normalized", "undistort_normalized"]
 
@@ -40,35 +41,44 @@ def undistort_normalized(
     Converges to ``tol`` in normalised units (1e-14 is about 1e-10 px for a 5000 px focal
     length), far below the 1e-3 px that ``cv2.undistortPoints``' fixed-point iteration can
     leave at the corners of a strongly distorted lens. The 2x2 Newton step is solved in
-    closed form, and only points that have not converged are iterated again.
+    closed form, point by point (compiled), each until its own step is below ``tol``.
     """
     k1, k2, p1, p2, k3 = np.asarray(dist, dtype=np.float64)
     xy_d = np.asarray(xy_d, dtype=np.float64)
-    shape = xy_d.shape
-    flat = xy_d.reshape(-1, 2)
-    xd, yd = flat[:, 0], flat[:, 1]
-    x, y = xd.copy(), yd.copy()
-    idx = np.arange(len(x))
-    for _ in range(max_iter):
-        X, Y = x[idx], y[idx]
-        r2 = X * X + Y * Y
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d(radial)/d(r2)
-        fx = X * radial + 2.0 * p1 * X * Y + p2 * (r2 + 2.0 * X * X) - xd[idx]
-        fy = Y * radial + p1 * (r2 + 2.0 * Y * Y) + 2.0 * p2 * X * Y - yd[idx]
-        # Jacobian [[a, b], [b, c]] of the distortion (it is symmetric)
-        a = radial + 2.0 * X * X * dradial + 2.0 * p1 * Y + 6.0 * p2 * X
-        b = 2.0 * X * Y * dradial + 2.0 * p1 * X + 2.0 * p2 * Y
-        c = radial + 2.0 * Y * Y * dradial + 6.0 * p1 * Y + 2.0 * p2 * X
-        det = a * c - b * b
-        sx = (c * fx - b * fy) / det
-        sy = (a * fy - b * fx) / det
-        x[idx] = X - sx
-        y[idx] = Y - sy
-        idx = idx[np.maximum(np.abs(sx), np.abs(sy)) > tol]
-        if idx.size == 0:
-            break
-    return np.stack([x, y], axis=-1).reshape(shape)
+    flat = np.ascontiguousarray(xy_d.reshape(-1, 2))
+    out = np.empty_like(flat)
+    _newton_undistort(flat, k1, k2, p1, p2, k3, float(tol), int(max_iter), out)
+    return out.reshape(xy_d.shape)
+
+
+@jit
+def _newton_undistort(xy_d, k1, k2, p1, p2, k3, tol, max_iter, out):  # pragma: no cover - compiled
+    """Per point, Newton steps until the step is at most ``tol`` (or ``max_iter`` steps)."""
+    for i in range(xy_d.shape[0]):
+        xd = xy_d[i, 0]
+        yd = xy_d[i, 1]
+        X = xd
+        Y = yd
+        for _ in range(max_iter):
+            r2 = X * X + Y * Y
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d(radial)/d(r2)
+            fx = X * radial + 2.0 * p1 * X * Y + p2 * (r2 + 2.0 * X * X) - xd
+            fy = Y * radial + p1 * (r2 + 2.0 * Y * Y) + 2.0 * p2 * X * Y - yd
+            # Jacobian [[a, b], [b, c]] of the distortion (it is symmetric)
+            a = radial + 2.0 * X * X * dradial + 2.0 * p1 * Y + 6.0 * p2 * X
+            b = 2.0 * X * Y * dradial + 2.0 * p1 * X + 2.0 * p2 * Y
+            c = radial + 2.0 * Y * Y * dradial + 6.0 * p1 * Y + 2.0 * p2 * X
+            det = a * c - b * b
+            sx = (c * fx - b * fy) / det
+            sy = (a * fy - b * fx) / det
+            X = X - sx
+            Y = Y - sy
+            # on as long as the step is above tol (a NaN step ends it, as it ends nothing else)
+            if not (abs(sx) > tol or abs(sy) > tol) or sx != sx or sy != sy:
+                break
+        out[i, 0] = X
+        out[i, 1] = Y
 
 
 @dataclass(frozen=True)

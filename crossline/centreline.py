@@ -126,6 +126,51 @@ def link_traces(
     return prev
 
 
+def _trace_position_py(prev: np.ndarray, col: np.ndarray, v: np.ndarray, along: bool):
+    """:func:`trace_position` on integer columns (``along``: scale by the trace's slope)."""
+    n = prev.size
+    root = np.full(n, -1, np.int64)
+    path = np.empty(n, np.int64)
+    for i in range(n):  # follow each chain up to a centre whose trace is known, or its start
+        k = 0
+        j = i
+        while root[j] < 0 and prev[j] >= 0:
+            path[k] = j
+            k += 1
+            j = prev[j]
+        r = root[j] if root[j] >= 0 else j
+        root[j] = r
+        for m in range(k):
+            root[path[m]] = r
+    last = col.copy()
+    for i in range(n):
+        if col[i] > last[root[i]]:
+            last[root[i]] = col[i]
+    start = np.empty(n)
+    end = np.empty(n)
+    for i in range(n):
+        start[i] = float(col[i] - col[root[i]])
+        end[i] = float(last[root[i]] - col[i])
+    if along and n:
+        total = np.zeros(n)
+        count = np.zeros(n)
+        for i in range(n):
+            if prev[i] >= 0:
+                total[root[i]] += abs(v[i] - v[prev[i]])
+                count[root[i]] += 1.0
+            else:
+                total[root[i]] += 0.0
+        for i in range(n):
+            slope = total[root[i]] / max(count[root[i]], 1.0)
+            factor = np.sqrt(1.0 + slope**2)
+            start[i] = start[i] * factor
+            end[i] = end[i] * factor
+    return root, start, end
+
+
+_trace_position = jit(_trace_position_py)
+
+
 def trace_position(
     prev: np.ndarray, u: np.ndarray, v: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -135,26 +180,9 @@ def trace_position(
     sqrt(1 + slope^2), the slope being the trace's mean step in rows per column).
     """
     n = len(prev)
-    root = np.where(prev >= 0, prev, np.arange(n))
-    while True:  # pointer jumping: log2(longest trace) rounds
-        nxt = root[root]
-        if np.array_equal(nxt, root):
-            break
-        root = nxt
     col = np.rint(np.asarray(u, dtype=np.float64)).astype(np.int64)
-    last = col.copy()
-    np.maximum.at(last, root, col)
-    start, end = (col - col[root]).astype(np.float64), (last[root] - col).astype(np.float64)
-    if v is not None and n:
-        v = np.asarray(v, dtype=np.float64)
-        has = prev >= 0
-        steps = np.zeros(n)
-        steps[has] = np.abs(v[has] - v[prev[has]])
-        total = np.bincount(root, weights=steps, minlength=n)
-        count = np.bincount(root, weights=has.astype(np.float64), minlength=n)
-        slope = total[root] / np.maximum(count[root], 1.0)
-        factor = np.sqrt(1.0 + slope**2)
-        start, end = start * factor, end * factor
+    vv = np.zeros(n) if v is None else np.asarray(v, dtype=np.float64)
+    root, start, end = _trace_position(np.asarray(prev, dtype=np.int64), col, vv, v is not None)
     return root, start, end
 
 

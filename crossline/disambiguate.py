@@ -65,17 +65,27 @@ def nearest_in_column(
     n = ref_u.size
     if n == 0 or u.size == 0:
         return np.full(u.size, -1, np.int64), np.full(u.size, np.inf)
-    key = ref_u * _BIG + ref_v
-    j = np.searchsorted(key, u * _BIG + v)
-    best = np.full(u.size, np.inf)
+    ref_u = np.asarray(ref_u, dtype=np.float64)
+    ref_v = np.asarray(ref_v, dtype=np.float64)
+    u = np.asarray(u, dtype=np.float64)
+    v = np.asarray(v, dtype=np.float64)
+    j = np.searchsorted(ref_u * _BIG + ref_v, u * _BIG + v)
+    return _nearest_of_two(ref_u, ref_v, u, v, j)
+
+
+@jit
+def _nearest_of_two(ref_u, ref_v, u, v, j):  # pragma: no cover - compiled
+    """Of the references at j - 1 and j (same column only), the nearer; ties to j - 1."""
+    n = ref_u.size
     idx = np.full(u.size, -1, np.int64)
-    for jj in (j - 1, j):
-        jc = np.clip(jj, 0, n - 1)
-        ok = (jj >= 0) & (jj < n) & (ref_u[jc] == u)
-        d = np.where(ok, np.abs(ref_v[jc] - v), np.inf)
-        better = d < best
-        best = np.where(better, d, best)
-        idx = np.where(better, jc, idx)
+    best = np.full(u.size, np.inf)
+    for i in range(u.size):
+        for jj in (j[i] - 1, j[i]):
+            if 0 <= jj < n and ref_u[jj] == u[i]:
+                d = abs(ref_v[jj] - v[i])
+                if d < best[i]:
+                    best[i] = d
+                    idx[i] = jj
     return idx, best
 
 
