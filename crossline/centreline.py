@@ -205,24 +205,45 @@ def blocked_ends(
     bkey = np.asarray(block_frame, dtype=np.int64) * span + bcol + 1
     order = np.lexsort((np.asarray(block_v, dtype=np.float64), bkey))
     bkey, bv = bkey[order], np.asarray(block_v, dtype=np.float64)[order]
+    q = np.asarray(frame, dtype=np.int64) * span + col + 1
+    return _blocked(np.asarray(trace, dtype=np.int64), col, q, np.asarray(v, dtype=np.float64),
+                    bkey, bv, float(max_step_px))
+
+
+@jit
+def _blocked(trace, col, q, v, bkey, bv, max_step):  # pragma: no cover - compiled
+    """:func:`blocked_ends` on keys: ``q`` each centre's (frame, column) key, ``bkey`` the
+    blockers' keys (sorted), ``bv`` their rows."""
+    n = col.size
     first = np.full(n, np.iinfo(np.int64).max)
     last = np.full(n, -1)
-    np.minimum.at(first, trace, col)
-    np.maximum.at(last, trace, col)
-    out = []
-    for end, du in ((first, -1), (last, 1)):
-        at_end = col == end[trace]
-        q = np.asarray(frame, dtype=np.int64) * span + col + du + 1
-        lo = np.searchsorted(bkey, q, side="left")
-        hi = np.searchsorted(bkey, q, side="right")
-        near = np.zeros(n, bool)
-        for k in range(int((hi - lo).max(initial=0))):
-            j = np.minimum(lo + k, bkey.size - 1)
-            near |= (lo + k < hi) & (np.abs(bv[j] - v) <= max_step_px)
-        hit = np.zeros(n, bool)
-        np.logical_or.at(hit, trace, at_end & near)
-        out.append(hit[trace])
-    return out[0], out[1]
+    for i in range(n):
+        first[trace[i]] = min(first[trace[i]], col[i])
+        last[trace[i]] = max(last[trace[i]], col[i])
+    start_hit = np.zeros(n, np.bool_)
+    end_hit = np.zeros(n, np.bool_)
+    for i in range(n):
+        for side in range(2):  # the column before the trace's first, after its last
+            if side == 0 and col[i] != first[trace[i]]:
+                continue
+            if side == 1 and col[i] != last[trace[i]]:
+                continue
+            key = q[i] - 1 if side == 0 else q[i] + 1
+            j = np.searchsorted(bkey, key)
+            while j < bkey.size and bkey[j] == key:
+                if abs(bv[j] - v[i]) <= max_step:
+                    if side == 0:
+                        start_hit[trace[i]] = True
+                    else:
+                        end_hit[trace[i]] = True
+                    break
+                j += 1
+    out_start = np.empty(n, np.bool_)
+    out_end = np.empty(n, np.bool_)
+    for i in range(n):
+        out_start[i] = start_hit[trace[i]]
+        out_end[i] = end_hit[trace[i]]
+    return out_start, out_end
 
 
 def _local_quadratic_py(ks: np.ndarray, order: np.ndarray, v: np.ndarray, h: int,

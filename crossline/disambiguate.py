@@ -133,13 +133,20 @@ def bridge_gaps(
 
 
 @jit
-def _nearest_in(u, v, col, target):  # pragma: no cover - compiled
-    """Index of the centre of column ``col`` nearest to row ``target`` (u sorted), and its distance."""
-    lo = np.searchsorted(u, col, side="left")
-    hi = np.searchsorted(u, col, side="right")
+def _nearest_in(u, v, end, p, col, target):  # pragma: no cover - compiled
+    """Index of the centre of column ``col`` nearest to row ``target``, and its distance.
+
+    ``u`` is sorted; ``end[i]`` is where the column of centre i ends; the search walks on
+    from ``p``, the first centre of a column at or before ``col`` (-1, inf if there is none).
+    """
+    n = u.size
+    while p < n and u[p] < col:
+        p = end[p]
+    if p >= n or u[p] != col:
+        return -1, np.inf
     best = np.inf
     idx = -1
-    for j in range(lo, hi):
+    for j in range(p, end[p]):
         d = abs(v[j] - target)
         if d < best:
             best = d
@@ -151,19 +158,34 @@ def _nearest_in(u, v, col, target):  # pragma: no cover - compiled
 def _bridge_nb(u, v, max_gap, step_px, kink_px):  # pragma: no cover - compiled
     """The filled columns of :func:`bridge_gaps` (u, v of the new centres only)."""
     n = u.size
+    start = np.empty(n, np.int64)  # first and one past the last centre of each one's column
+    end = np.empty(n, np.int64)
+    a = 0
+    for i in range(1, n + 1):
+        if i == n or u[i] != u[a]:
+            for k in range(a, i):
+                start[k] = a
+                end[k] = i
+            a = i
     fu = np.empty(n * max_gap)
     fv = np.empty(n * max_gap)
     k = 0
     near = step_px + kink_px
     for i in range(n):
-        _, d_next = _nearest_in(u, v, u[i] + 1.0, v[i])
+        nxt = end[i]  # the next column's first centre, if it is the next column
+        _, d_next = _nearest_in(u, v, end, nxt, u[i] + 1.0, v[i])
         if d_next <= near:
             continue
-        jp, d_prev = _nearest_in(u, v, u[i] - 1.0, v[i])
+        q = start[i] - 1  # back, column by column, to the one at u - 1
+        while q >= 0 and u[q] > u[i] - 1.0:
+            q = start[q] - 1
+        jp, d_prev = -1, np.inf
+        if q >= 0:
+            jp, d_prev = _nearest_in(u, v, end, start[q], u[i] - 1.0, v[i])
         known = d_prev <= near
         step = v[i] - v[jp] if known else 0.0
         for g in range(2, max_gap + 2):  # the next centre g columns on: g - 1 missing
-            j, d = _nearest_in(u, v, u[i] + g, v[i] + g * step)
+            j, d = _nearest_in(u, v, end, nxt, u[i] + g, v[i] + g * step)
             if d <= (kink_px if known else step_px) * g:
                 for m in range(1, g):
                     fu[k] = u[i] + m
