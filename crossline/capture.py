@@ -515,7 +515,6 @@ class FramesTable:
     time_s: np.ndarray  # (N,)
     lasers: np.ndarray  # (N,) str: A | B | AB | off
     T_base_tool: np.ndarray  # (N, 4, 4)
-    lines: np.ndarray  # (N,) line of each row in the file
 
 
 def _frames_table(
@@ -525,7 +524,7 @@ def _frames_table(
     a row whose frames/<frame>.png is not there). Returns the table of the valid rows, the
     frame numbers the rows name, and whether the file has any row."""
     rows = _read_table(path, rel, FRAME_COLUMNS, problems)
-    frames, times, states, poses, lines = [], [], [], [], []
+    frames, times, states, poses = [], [], [], []
     seen: dict[int, int] = {}
     last_t = -math.inf
     for lineno, row in rows:
@@ -568,12 +567,10 @@ def _frames_table(
         times.append(t)
         states.append(row["lasers"])
         poses.append(pose)
-        lines.append(lineno)
     P = np.array(poses).reshape(-1, 7)
     return FramesTable(np.array(frames, dtype=np.int64), np.array(times),
                        np.array(states, dtype=object),
-                       transform_from_pose(P[:, :3], P[:, 3:]).reshape(-1, 4, 4),
-                       np.array(lines, dtype=np.int64)), set(seen), bool(rows)
+                       transform_from_pose(P[:, :3], P[:, 3:]).reshape(-1, 4, 4)), set(seen), bool(rows)
 
 
 def read_frames_table(path: str | Path) -> FramesTable:

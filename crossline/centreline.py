@@ -158,8 +158,6 @@ def _trace_position_py(prev: np.ndarray, col: np.ndarray, v: np.ndarray, along: 
             if prev[i] >= 0:
                 total[root[i]] += abs(v[i] - v[prev[i]])
                 count[root[i]] += 1.0
-            else:
-                total[root[i]] += 0.0
         for i in range(n):
             slope = total[root[i]] / max(count[root[i]], 1.0)
             factor = np.sqrt(1.0 + slope**2)
@@ -203,7 +201,7 @@ def blocked_ends(
     bcol = np.rint(np.asarray(block_u, dtype=np.float64)).astype(np.int64)
     span = int(max(col.max(), bcol.max())) + 3
     bkey = np.asarray(block_frame, dtype=np.int64) * span + bcol + 1
-    order = np.lexsort((np.asarray(block_v, dtype=np.float64), bkey))
+    order = np.argsort(bkey, kind="stable")  # any blocker of a key near the row will do
     bkey, bv = bkey[order], np.asarray(block_v, dtype=np.float64)[order]
     q = np.asarray(frame, dtype=np.int64) * span + col + 1
     return _blocked(np.asarray(trace, dtype=np.int64), col, q, np.asarray(v, dtype=np.float64),

@@ -1121,26 +1121,25 @@ def run_extract_stripes(
     paths = [sc.frame_path(f) for f in frames]
     fit, transposed = _frame_work(extractor, params)
 
-    def work(j: int, img: np.ndarray) -> tuple[dict[str, Any], pa.Table, np.ndarray]:
+    def work(j: int, img: np.ndarray) -> tuple[dict[str, Any], pa.Table, dict[str, int]]:
         # the table and the flag counts are made in the worker thread too: the loop below,
         # which the workers wait on, only writes
         c = fit(j, img)
-        flags = np.bincount(c["flags"].astype(np.uint8), minlength=256)
+        flags = {name: int(np.count_nonzero(c["flags"] & bit)) for bit, name in FLAG_NAMES.items()}
         return c, _table(int(frames[j]), str(states[j]), c, win.x, win.y), flags
 
     with atomic_path(out) as tmp:
         writer = _GroupedWriter(tmp)
         it = map_frames(paths, work, shape=(win.height, win.width), threads=threads, decoder=decoder,
                         transposed=transposed)
-        values = np.arange(256)
         try:
-            for j, (c, table, hist) in enumerate(it):
+            for j, (c, table, flags) in enumerate(it):
                 counts["frames"] += 1
                 nc = c["u"].size
                 counts["frames_without_stripe"] += nc == 0
                 counts["centres"] += nc
-                for bit, name in FLAG_NAMES.items():
-                    counts[f"flag_{name}"] += int(hist[(values & bit) != 0].sum())
+                for name, k in flags.items():
+                    counts[f"flag_{name}"] += k
                 if "_info" in c and nc:
                     noise.append((int(frames[j]), c["_info"]["noise_dn"], c["_info"]["relative_noise"]))
                 writer.add(table)

@@ -153,6 +153,7 @@ def run_triangulate(
     check_pattern(sc.lasers, scan)
     cam, planes = _load_calibration(camera_json, lasers_json)
     T_tool_cam = load_handeye(handeye_json)
+    T_base_cam = sc.T_base_tool @ T_tool_cam  # each frame's camera pose, once for the scan
     smeta = read_stripes_meta(stripes)
     if smeta.get("scan") != scan or smeta.get("frame_range") != [0, len(sc.frames)]:
         raise StageError(f"{stripes}: holds scan {smeta.get('scan')!r} frames {smeta.get('frame_range')}, "
@@ -232,7 +233,7 @@ def run_triangulate(
             lab = label[idx]
             p_cam = triangulate(cam, planes, uv, lab)
             fpos = by_number[np.searchsorted(sorted_frames, frame[idx])]  # scan position of each point
-            p_base = to_base(p_cam, sc.T_base_tool, T_tool_cam, fpos)
+            p_base = transform_points(T_base_cam, p_cam, fpos)
             sel = t.take(pa.array(idx))
             cols = {
                 "frame": sel.column("frame"),
