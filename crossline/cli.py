@@ -414,6 +414,10 @@ def _fuse(p: argparse.ArgumentParser) -> None:
                         "this share of the whole, the white part's sqrt(1 - share^2)")
     p.add_argument("--arm-corr-time-s", type=_positive, default=0.3,
                    help="correlation time of that part of the arm's error (s)")
+    p.add_argument("--crossing-half-mm", type=_positive, default=0.6,
+                   help="the refinement's stripe length fitted either side of a crossing (mm)")
+    p.add_argument("--crossing-min-angle-deg", type=_positive, default=30.0,
+                   help="smallest angle between two crossing stripes the refinement uses (deg)")
     _threads(p)
 
     def run(a: argparse.Namespace) -> int:
@@ -425,7 +429,8 @@ def _fuse(p: argparse.ArgumentParser) -> None:
             mesh_out=a.mesh_out, threads=a.threads, refine_poses=a.refine_poses,
             frames=a.frames, arm_precision_mm=a.arm_precision_mm,
             arm_precision_rad=a.arm_precision_rad, arm_smooth_fraction=a.arm_smooth_fraction,
-            arm_corr_time_s=a.arm_corr_time_s,
+            arm_corr_time_s=a.arm_corr_time_s, crossing_half_mm=a.crossing_half_mm,
+            crossing_min_angle_deg=a.crossing_min_angle_deg,
         )
         return 0
 

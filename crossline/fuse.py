@@ -35,7 +35,7 @@ import numpy as np
 
 from crossline.atomic import atomic_path, write_json
 from crossline.errors import StageError
-from crossline.refine import ArmPrior
+from crossline.refine import HALF_MM, MIN_ANGLE_DEG, ArmPrior
 
 __all__ = [
     "LASER_CODES",
@@ -203,6 +203,8 @@ def fuse_cloud(
     normal_radius_mm: float = 0.5,
     refine_prior: ArmPrior | None = None,
     frame_table: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    crossing_half_mm: float = HALF_MM,
+    crossing_min_angle_deg: float = MIN_ANGLE_DEG,
     threads: int = 1,
 ) -> FusedCloud:
     """Optional pose refinement, statistical outlier removal, optional voxel down-sampling
@@ -213,7 +215,9 @@ def fuse_cloud(
     ``refine_prior`` (and ``points_cam``, which gives each frame's camera centre) every
     frame's pose is refined first (:func:`crossline.refine.refine_frames`); ``frame_table``
     = (frame numbers, times in s, reported flange positions (M, 3)) from the scan's
-    frames.csv gives the prior its time correlation and the rotations their centre.
+    frames.csv gives the prior its time correlation and the rotations their centre;
+    ``crossing_half_mm`` and ``crossing_min_angle_deg`` are the refinement's stripe length
+    fitted either side of a crossing and the smallest crossing angle it uses.
     """
     import open3d as o3d
 
@@ -227,7 +231,8 @@ def fuse_cloud(
     if len(p) == 0:
         raise StageError("no points to fuse")
     if refine_prior is not None:
-        p, stats["refine"] = _refine(p, lab, fr, points_cam, refine_prior, frame_table, threads)
+        p, stats["refine"] = _refine(p, lab, fr, points_cam, refine_prior, frame_table, threads,
+                                     crossing_half_mm, crossing_min_angle_deg)
 
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
     if neighbours > 0 and len(p) > neighbours:
@@ -267,6 +272,7 @@ def fuse_cloud(
 def _refine(
     p: np.ndarray, lab: np.ndarray, fr: np.ndarray, points_cam: np.ndarray | None,
     prior: ArmPrior, frame_table: tuple[np.ndarray, np.ndarray, np.ndarray] | None, threads: int,
+    half_mm: float = HALF_MM, min_angle_deg: float = MIN_ANGLE_DEG,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Points with refined per-frame poses, and the stats of the refinement (JSON-ready)."""
     from crossline.refine import refine_frames
@@ -290,7 +296,7 @@ def _refine(
                              "not in the scan's frames table")
         times, origins = tt[pos].astype(np.float64), to[pos].astype(np.float64)
     ref = refine_frames(fr, lab, p, views, prior, frames=frames, times=times, origins=origins,
-                        threads=threads)
+                        half_mm=half_mm, min_angle_deg=min_angle_deg, threads=threads)
     d = dict(ref.diagnostics)
     # timings go to the log, not to the stats: the same points must give the same bytes
     log.info("pose refinement: %d crossings, %d frames, %.2f s (crossings %.2f s)", d["crossings"],
@@ -473,6 +479,8 @@ def run_fuse(
     arm_precision_rad: float | None = None,
     arm_smooth_fraction: float = 0.9,
     arm_corr_time_s: float = 0.3,
+    crossing_half_mm: float = HALF_MM,
+    crossing_min_angle_deg: float = MIN_ANGLE_DEG,
 ) -> FusedCloud:
     """The ``fuse`` stage: points parquet -> fused PLY (+ stats JSON, + STL mesh if asked).
 
@@ -481,7 +489,9 @@ def run_fuse(
     figure over 300 mm) read as 2 sigma of the 3-D error, split into a drift correlated in
     time over ``arm_corr_time_s`` (sigma ``arm_smooth_fraction`` of the whole) and a white
     part (the rest of the variance); ``frames`` (the scan's
-    frames.csv) gives the frame times and the flange positions.
+    frames.csv) gives the frame times and the flange positions; ``crossing_half_mm`` is the
+    stripe length fitted either side of a crossing, ``crossing_min_angle_deg`` the smallest
+    crossing angle used.
     """
     import pandas as pd
 
@@ -507,6 +517,10 @@ def run_fuse(
                 f"(> 0), arm_precision_rad={arm_precision_rad} (> 0 or auto), "
                 f"arm_smooth_fraction={arm_smooth_fraction} (0..1), "
                 f"arm_corr_time_s={arm_corr_time_s} (> 0)") from None
+        if not (crossing_half_mm > 0 and 0 < crossing_min_angle_deg < 90):
+            raise StageError(
+                f"pose refinement parameters out of range: crossing_half_mm={crossing_half_mm} "
+                f"(> 0), crossing_min_angle_deg={crossing_min_angle_deg} (0..90)")
     table = _read_frames(frames) if refine_poses and frames is not None else None
     try:
         df = pd.read_parquet(points)
@@ -527,7 +541,8 @@ def run_fuse(
     cloud = fuse_cloud(
         xyz[finite], laser[finite], frame[finite], cam, neighbours=neighbours,
         std_ratio=std_ratio, voxel_mm=voxel_mm, normal_radius_mm=normal_radius_mm,
-        refine_prior=prior, frame_table=table, threads=threads,
+        refine_prior=prior, frame_table=table, crossing_half_mm=crossing_half_mm,
+        crossing_min_angle_deg=crossing_min_angle_deg, threads=threads,
     )
     cloud.stats["n_non_finite"] = int((~finite).sum())
     cloud.stats["parameters"] = {"neighbours": neighbours, "std_ratio": std_ratio,
@@ -537,6 +552,7 @@ def run_fuse(
         cloud.stats["parameters"].update(
             arm_precision_mm=arm_precision_mm, arm_precision_rad=arm_precision_rad,
             arm_smooth_fraction=arm_smooth_fraction, arm_corr_time_s=arm_corr_time_s,
+            crossing_half_mm=crossing_half_mm, crossing_min_angle_deg=crossing_min_angle_deg,
             frames_file=None if frames is None else Path(frames).name)
     cloud.stats["points_file"] = points.name
     write_ply(out, cloud)

@@ -51,6 +51,8 @@ __all__ = [
 ]
 
 LEVER_MM = 300.0  # rotation prior from the position figure: the error spread over one arm link
+HALF_MM = 0.6  # stripe fitted either side of a crossing, mm
+MIN_ANGLE_DEG = 30.0  # stripes crossing at a smaller angle are not used
 
 
 @dataclass(frozen=True)
@@ -217,9 +219,9 @@ def find_crossings(
     points: np.ndarray,
     viewpoints: np.ndarray,
     *,
-    half_mm: float = 0.6,
+    half_mm: float = HALF_MM,
     radius_mm: float | None = None,
-    min_angle_deg: float = 30.0,
+    min_angle_deg: float = MIN_ANGLE_DEG,
     threads: int = 1,
 ) -> Crossings:
     """Every crossing of an A stripe with a B stripe (of any frame, the same one included).
@@ -495,7 +497,8 @@ def refine_frames(
     frames: np.ndarray | None = None,
     times: np.ndarray | None = None,
     origins: np.ndarray | None = None,
-    half_mm: float = 0.6,
+    half_mm: float = HALF_MM,
+    min_angle_deg: float = MIN_ANGLE_DEG,
     huber: float = 2.0,
     threads: int = 1,
 ) -> Refinement:
@@ -506,7 +509,8 @@ def refine_frames(
     those of the points), ``viewpoints`` (F, 3) their camera centres, ``times`` (F,) their
     times in s (None: the frames' errors are taken as independent), ``origins`` (F, 3) their
     flange origins (the centre of the orientation error; default the camera centres).
-    ``half_mm`` is the half-length of stripe fitted either side of a crossing.
+    ``half_mm`` is the half-length of stripe fitted either side of a crossing and
+    ``min_angle_deg`` the smallest angle at which two stripes may cross to be used.
     """
     import time
 
@@ -525,7 +529,8 @@ def refine_frames(
     org = views if origins is None else np.asarray(origins, dtype=np.float64)
     lab = np.asarray(laser, dtype=np.int64)
     use = (lab == 1) | (lab == 2)
-    cr = find_crossings(fpos[use], lab[use], p[use], views, half_mm=half_mm, threads=threads)
+    cr = find_crossings(fpos[use], lab[use], p[use], views, half_mm=half_mm,
+                        min_angle_deg=min_angle_deg, threads=threads)
     t1 = time.perf_counter()
     e, beta, info = solve_errors(cr, org, prior, times, huber=huber)
     C = correction_transforms(e[:, :3], e[:, 3:], org)

@@ -243,6 +243,10 @@ def test_run_fuse_refinement_needs_what_it_names(posed_plate, tmp_path):
         run_fuse(nocam, tmp_path / "x.ply", refine_poses=True)
     with pytest.raises(StageError, match="arm_precision_mm"):
         run_fuse(pq, tmp_path / "x.ply", refine_poses=True, arm_precision_mm=0.0)
+    with pytest.raises(StageError, match=r"crossing_min_angle_deg=90 \(0\.\.90\)"):
+        run_fuse(pq, tmp_path / "x.ply", refine_poses=True, crossing_min_angle_deg=90)
+    with pytest.raises(StageError, match=r"crossing_half_mm=0 \(> 0\)"):
+        run_fuse(pq, tmp_path / "x.ply", refine_poses=True, crossing_half_mm=0)
     with pytest.raises(StageError, match="frames table not found"):
         run_fuse(pq, tmp_path / "x.ply", refine_poses=True, frames=tmp_path / "none.csv")
     # a faulty frames table is read by the capture's own parser: every faulty row named

@@ -21,6 +21,8 @@ rule fuse_points:
         arm_precision_rad=config["fuse"]["arm_precision_rad"],
         arm_smooth_fraction=config["fuse"]["arm_smooth_fraction"],
         arm_corr_time_s=config["fuse"]["arm_corr_time_s"],
+        crossing_half_mm=config["fuse"]["crossing_half_mm"],
+        crossing_min_angle_deg=config["fuse"]["crossing_min_angle_deg"],
     log:
         "logs/{capture}/fuse_points/{scan}.log",
     benchmark:
@@ -38,4 +40,6 @@ rule fuse_points:
         "--refine-poses {params.refine_poses} --frames {input.frames} "
         "--arm-precision-mm {params.arm_precision_mm} --arm-precision-rad {params.arm_precision_rad} "
         "--arm-smooth-fraction {params.arm_smooth_fraction} --arm-corr-time-s {params.arm_corr_time_s} "
+        "--crossing-half-mm {params.crossing_half_mm} "
+        "--crossing-min-angle-deg {params.crossing_min_angle_deg} "
         "--threads {threads} > {log} 2>&1"
