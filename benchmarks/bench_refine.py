@@ -1,10 +1,12 @@
 """Pose refinement from the A-B stripe crossings (fuse.refine_poses): does it help, and where?
 
-    python benchmarks/bench_refine.py                       # the demo capture + a compact one
+    python benchmarks/bench_refine.py                       # demo, compact-0, paper-1, compact-1
     python benchmarks/bench_refine.py --captures demo --draws 0
 
-For each capture (``demo`` = data/raw/demo, the paper's rig; ``compact`` = a capture of the
-compact preset, seed 0, rendered once into benchmarks/.cache/refine/, ~5 min) the workflow
+For each capture (``demo`` = data/raw/demo, the paper's rig, seed 0; ``compact`` = the
+compact preset, seed 0; ``paper-1`` and ``compact-1`` = both rigs again with seed 1, i.e.
+other stripes, noise and arm draws; the last three rendered once into
+benchmarks/.cache/refine/, ~2 min each) the workflow
 runs in a private copy under benchmarks/.cache/refine/wd-<capture>/ (stages cached by
 Snakemake), twice: with ``fuse.refine_poses`` false and true, the rest of config.yaml as it
 is. Then, for every scan and both runs:
@@ -71,18 +73,27 @@ def say(text: str = "") -> None:
 
 
 def capture_path(name: str) -> Path | None:
-    """The capture folder of ``name`` (rendering the compact one if needed), or None."""
+    """The capture folder of ``name`` (rendering a ``<preset>-<seed>`` one if needed), or None.
+
+    ``demo`` is data/raw/demo; ``compact`` is ``compact-0``; ``<preset>-<seed>`` (e.g.
+    ``paper-1``) is that preset rendered with that seed into benchmarks/.cache/refine/ (all
+    scans, ~2 min); anything else is taken as a capture folder.
+    """
     if name == "demo":
         p = REPO / "data" / "raw" / "demo"
         return p if (p / "truth.json").is_file() else None
-    if name == "compact":
-        p = CACHE / "compact-0"
+    from crossline.sim.presets import PRESETS
+
+    name = "compact-0" if name == "compact" else name
+    preset, _, seed = name.rpartition("-")
+    if preset in PRESETS and seed.isdigit():
+        p = CACHE / name
         if not (p / "truth.json").is_file():
             from crossline.sim import simulate
 
-            say(f"rendering the compact preset (seed 0) into {p} ...")
+            say(f"rendering the {preset} preset (seed {seed}) into {p} ...")
             shutil.rmtree(p, ignore_errors=True)
-            simulate(p, preset="compact", seed=0, threads=2, progress=False)
+            simulate(p, preset=preset, seed=int(seed), threads=2, progress=False)
         return p
     p = Path(name)
     return p if (p / "truth.json").is_file() else None
@@ -424,7 +435,8 @@ def print_capture(name: str, res: dict) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--captures", default="demo,compact", help="demo, compact or capture folders")
+    ap.add_argument("--captures", default="demo,compact,paper-1,compact-1",
+                    help="demo, compact, <preset>-<seed> or capture folders (comma-separated)")
     ap.add_argument("--draws", type=int, default=8, help="fresh arm-error draws per scan (0: none)")
     a = ap.parse_args(argv)
     out: dict[str, Any] = {}

@@ -16,7 +16,12 @@ so whatever it does comes from the stripes. Printed (µm):
 - the gaps binned by the crossing's polar angle on the sphere and by the frame distance
   between its A and B stripes (structure a white-noise model does not have);
 - each laser's radial error on the sphere by polar angle and azimuth quadrant, and the
-  refinement's radial shift per frame along the sweep.
+  refinement's radial shift per frame along the sweep;
+- for every capture of ``--variant-captures`` (bench_refine's names), the refinement's two
+  crossing parameters (``fuse.crossing_half_mm``, ``fuse.crossing_min_angle_deg``) varied:
+  on the workflow's points (estimated calibration) the size shift the refinement makes with
+  the TRUE poses, and over ``--draws`` fresh arm draws (bench_refine's draws) the size error's
+  mean and RMS and the form error's mean (µm).
 
 Results: benchmarks/results/refine_bias.txt.
 """
@@ -45,7 +50,14 @@ from crossline.capture import open_capture  # noqa: E402
 from crossline.fuse import camera_centres  # noqa: E402
 from crossline.geometry import transform_from_pose, transform_points  # noqa: E402
 from crossline.laser import LaserPlanes  # noqa: E402
-from crossline.refine import ArmPrior, correction_transforms, refine_frames, solve_errors  # noqa: E402
+from crossline.refine import (  # noqa: E402
+    HALF_MM,
+    MIN_ANGLE_DEG,
+    ArmPrior,
+    correction_transforms,
+    refine_frames,
+    solve_errors,
+)
 from crossline.triangulate import triangulate  # noqa: E402
 
 RESULTS = REPO / "benchmarks" / "results"
@@ -64,11 +76,69 @@ def binned(label: str, x: np.ndarray, y: np.ndarray, bins: int = 5) -> None:
                                        for i in range(bins)))
 
 
+VARIANTS = ((0.6, 30.0), (0.4, 30.0), (0.6, 60.0), (0.4, 60.0))  # (half_mm, min_angle_deg)
+
+
+def crossing_variants(name: str, scan: str, prior: ArmPrior, draws: int) -> None:
+    """Size shift on the true poses and figures over arm draws, per crossing-parameter pair."""
+    from crossline.sim.arm import noise_scan
+    from crossline.sim.presets import PRESETS
+
+    cap = capture_path(name)
+    interim = CACHE / f"wd-{name}" / "data" / "interim" / name
+    points_file = interim / "points" / f"{scan}.parquet"
+    if cap is None or not points_file.is_file():
+        say(f"  {name}: no points at {points_file} (run bench_refine.py --captures {name}): skipped")
+        return
+    truth = json.loads((cap / "truth.json").read_text())
+    spec = truth["scans"][scan]
+    R = 0.5 * float(spec["diameter"])
+    df = pd.read_parquet(points_file)
+    X = np.array(json.loads((interim / "calibration" / "handeye.json").read_text())["T_tool_cam"])
+    pt = true_points(cap, scan, df, X)
+    tp = pd.read_parquet(cap / spec["poses"]).sort_values("frame")
+    Tt = transform_from_pose(tp[["x", "y", "z"]].to_numpy(), tp[["qw", "qx", "qy", "qz"]].to_numpy())
+    dt = float(np.median(np.diff(tp["time_s"].to_numpy())))
+    pos = np.searchsorted(tp["frame"].to_numpy(), df["frame"].to_numpy())
+    pc = df[["x_cam", "y_cam", "z_cam"]].to_numpy()
+    fr = df["frame"].to_numpy()
+    lab = np.where(df["laser"].astype(str) == "A", 1, 2)
+
+    def sphere(P: np.ndarray) -> tuple[float, float]:
+        f = mt.measure_sphere(P, 2 * R, ransac_threshold_mm=0.2, trim_sigma=5.0, seed=0).figures()
+        return 1e3 * f["size_error_mm"], 1e3 * f["form_error_mm"]
+
+    def refined(p: np.ndarray, T: np.ndarray, half: float, angle: float) -> np.ndarray:
+        frames, views = camera_centres(fr, pc, p)
+        k = np.searchsorted(tp["frame"].to_numpy(), frames)
+        return refine_frames(fr, lab, p, views, prior, frames=frames, times=tp["time_s"].to_numpy()[k],
+                             origins=T[k, :3, 3], half_mm=half, min_angle_deg=angle, threads=2).points
+
+    posed = [(pt, Tt)]
+    for k in range(draws):
+        Tr, _, _ = noise_scan(Tt, PRESETS[truth["preset"]].arm, dt, np.random.default_rng(1000 + k))
+        posed.append((transform_points((Tr @ X)[pos], pc), Tr))
+    base = sphere(pt)[0]
+    raw = np.array([sphere(p) for p, _ in posed[1:]])
+    say(f"  {name}/{scan} ({truth['preset']}), true poses size {base:+.2f}; {draws} draws unrefined: "
+        f"size mean {raw[:, 0].mean():+.2f} RMS {np.sqrt(np.mean(raw[:, 0] ** 2)):.2f}, "
+        f"form mean {raw[:, 1].mean():.1f}")
+    for half, angle in VARIANTS:
+        shift = sphere(refined(pt, Tt, half, angle))[0] - base
+        f = np.array([sphere(refined(p, T, half, angle)) for p, T in posed[1:]])
+        say(f"    half {half:.1f} mm, angle >= {angle:2.0f} deg: true-pose size shift {shift:+6.2f};  "
+            f"draws size mean {f[:, 0].mean():+6.2f} RMS {np.sqrt(np.mean(f[:, 0] ** 2)):5.2f}, "
+            f"form mean {f[:, 1].mean():5.1f}")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--capture", default="compact", help="demo or compact (bench_refine's names)")
     ap.add_argument("--scan", default="ball")
     ap.add_argument("--noise-draws", type=int, default=6)
+    ap.add_argument("--variant-captures", default="demo,compact,paper-1,compact-1",
+                    help="captures for the crossing-parameter table ('' for none)")
+    ap.add_argument("--draws", type=int, default=8, help="arm draws per capture for that table")
     a = ap.parse_args(argv)
     cap = capture_path(a.capture)
     interim = CACHE / f"wd-{a.capture}" / "data" / "interim" / a.capture
@@ -159,6 +229,11 @@ def main(argv: list[str] | None = None) -> int:
     k = np.flatnonzero(cnt > 50)
     say("  the refinement's mean radial shift per frame (µm), every 10th frame with points: "
         + " ".join(f"{frames[i]}:{per[i]:+.1f}" for i in k[::10]))
+    if a.variant_captures:
+        say(f"=== the refinement's crossing parameters (default: half {HALF_MM} mm, angle >= "
+            f"{MIN_ANGLE_DEG:g} deg), µm")
+        for name in a.variant_captures.split(","):
+            crossing_variants(name, a.scan, prior, a.draws)
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "refine_bias.txt").write_text("\n".join(LINES) + "\n")
     return 0
