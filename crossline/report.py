@@ -343,6 +343,13 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
                                               "n_output") if k in fs}
         if isinstance(fs.get("parameters"), dict):
             counts["fused"]["parameters"] = fs["parameters"]
+        ref = fs.get("refine")
+        if isinstance(ref, dict):
+            # what the pose refinement saw and did: it changes every figure of the scan
+            counts["fused"]["pose_refinement"] = {
+                k: ref[k] for k in ("crossings", "used", "frames", "frames_with_crossings",
+                                    "gap_rms_before_mm", "gap_rms_after_mm", "ab_offset_mm",
+                                    "correction_rms_mm", "correction_max_mm") if k in ref}
     if sd.points_info:
         counts["triangulation"] = sd.points_info
     out["counts"] = counts

@@ -67,6 +67,11 @@ def fmt(value: Any, unit: str = "", digits: int = 4, signed: bool = False) -> st
     return s + (f" {unit}" if unit else "")
 
 
+def _um(mm: float | None) -> str:
+    """A length given in mm printed in µm, one decimal."""
+    return fmt(None if mm is None else 1e3 * mm, "", 1)
+
+
 def fmt_row_value(row: dict[str, Any]) -> str:
     """The measured value of a summary row."""
     signed = row.get("abs", False)
@@ -789,6 +794,13 @@ def page_scan(m: dict[str, Any], name: str, plots: dict[str, Any]) -> Figure:
     if fz:
         lines.append(f"fused cloud {fmt(fz.get('n_output'))} points "
                      f"({fmt(fz.get('n_outliers'))} outliers removed)")
+        pr = fz.get("pose_refinement")
+        if pr:
+            lines.append(f"arm poses refined: {fmt(pr.get('used'))} A-B crossings, "
+                         f"{fmt(pr.get('frames_with_crossings'))} of {fmt(pr.get('frames'))} frames")
+            lines.append(f"  crossing gaps {_um(pr.get('gap_rms_before_mm'))} -> "
+                         f"{_um(pr.get('gap_rms_after_mm'))} µm RMS, corrections "
+                         f"{_um(pr.get('correction_rms_mm'))} µm")
     if s.get("cloud_source"):
         lines.append(f"measured on {s['cloud_source']}")
     for ln in lines:

@@ -38,7 +38,8 @@ def quick_pipeline(quick_capture, tmp_path_factory):
              "--lasers", str(cal / "lasers.json"), "--handeye", str(cal / "handeye.json"),
              "--out", str(pts)],
             ["fuse", str(pts), "--out", str(root / "processed" / f"{s}.ply"), "--stats",
-             str(root / "processed" / f"{s}.fuse.json")],
+             str(root / "processed" / f"{s}.fuse.json"), "--refine-poses", "true",
+             "--frames", str(quick_capture / "scans" / s / "frames.csv")],
         ]
     for argv in steps:
         assert main(argv) == 0, f"stage failed: crossline {' '.join(argv)}"
@@ -84,6 +85,11 @@ def test_quick_report_pages_show_metrics(quick_pipeline):
     for name, s in m["scans"].items():
         page = next(t for t in texts if f"Scan '{name}'" in t)
         assert fmt(s["counts"]["gain_over_single_line"], "", 3) in page
+        # the pose refinement (the workflow's default) is stated with what it saw
+        pr = s["counts"]["fused"]["pose_refinement"]
+        assert pr["crossings"] > 0 and pr["gap_rms_after_mm"] < pr["gap_rms_before_mm"]
+        assert (f"arm poses refined: {fmt(pr['used'])} A-B crossings, "
+                f"{fmt(pr['frames_with_crossings'])} of {fmt(pr['frames'])} frames") in page
         meas = s.get("measurement") or {}
         shown = {"gauge_block": [("mean_mm", "mm"), ("std_mm", "mm")],
                  "plane": [("share_within_band", "%"), ("rms_mm", "mm")],
