@@ -17,8 +17,11 @@ so whatever it does comes from the stripes. Printed (µm):
   between its A and B stripes (structure a white-noise model does not have);
 - each laser's radial error on the sphere by polar angle and azimuth quadrant, and the
   refinement's radial shift per frame along the sweep;
-- for every capture of ``--variant-captures`` (bench_refine's names), the refinement's two
-  crossing parameters (``fuse.crossing_half_mm``, ``fuse.crossing_min_angle_deg``) varied:
+- for every capture of ``--variant-captures`` (bench_refine's names): each laser's stripe
+  centres against the true centre lines by the length of their column cut (over the laser's
+  median: steep or merged stripes), and the refinement's crossing parameters
+  (``fuse.crossing_half_mm``, ``fuse.crossing_min_angle_deg``,
+  ``fuse.crossing_max_width_ratio``) varied:
   on the workflow's points (estimated calibration) the size shift the refinement makes with
   the TRUE poses, and over ``--draws`` fresh arm draws (bench_refine's draws) the size error's
   mean and RMS and the form error's mean (µm).
@@ -52,11 +55,13 @@ from crossline.geometry import transform_from_pose, transform_points  # noqa: E4
 from crossline.laser import LaserPlanes  # noqa: E402
 from crossline.refine import (  # noqa: E402
     HALF_MM,
+    MAX_WIDTH_RATIO,
     MIN_ANGLE_DEG,
     ArmPrior,
     correction_transforms,
     refine_frames,
     solve_errors,
+    usable_centres,
 )
 from crossline.triangulate import triangulate  # noqa: E402
 
@@ -76,7 +81,38 @@ def binned(label: str, x: np.ndarray, y: np.ndarray, bins: int = 5) -> None:
                                        for i in range(bins)))
 
 
-VARIANTS = ((0.6, 30.0), (0.4, 30.0), (0.6, 60.0), (0.4, 60.0))  # (half_mm, min_angle_deg)
+# (half_mm, min_angle_deg, max_width_ratio); 0 = every centre may make crossings
+VARIANTS = ((0.6, 30.0, 0.0), (0.6, 30.0, 2.0), (0.4, 30.0, 0.0), (0.6, 60.0, 0.0), (0.4, 60.0, 0.0))
+
+
+def centre_error_by_cut(cap: Path, scan: str, df: pd.DataFrame) -> None:
+    """The centres' true error (px, along the column) by their cut's length over the laser's median."""
+    truth_file = cap / "truth" / f"{scan}_centrelines.parquet"
+    if not truth_file.is_file() or "width" not in df:
+        return
+    t = pd.read_parquet(truth_file, columns=["frame", "laser", "u", "v", "visible"])
+    t = t[t["visible"]].rename(columns={"v": "v_true"})
+    d = df[["frame", "laser", "u", "v", "width"]].copy()
+    d["laser"] = d["laser"].astype(str)
+    t["laser"] = t["laser"].astype(str)
+    d["u"] = np.round(d["u"]).astype(np.int64)
+    d["pid"] = np.arange(len(d))
+    m = d.merge(t[["frame", "laser", "u", "v_true"]], on=["frame", "laser", "u"])
+    m["dv"] = m["v"] - m["v_true"]
+    m = m.loc[m.assign(a=m["dv"].abs()).groupby("pid")["a"].idxmin()]  # nearest true line
+    m = m[m["dv"].abs() < 2.0]
+    for laser in ("A", "B"):
+        x = m[m["laser"] == laser]
+        if len(x) == 0:
+            continue
+        ratio = x["width"] / np.median(df.loc[df["laser"].astype(str) == laser, "width"])
+        parts = []
+        for lo, hi in ((0, 1.5), (1.5, 2.0), (2.0, np.inf)):
+            sel = (ratio > lo) & (ratio <= hi)
+            if sel.sum():
+                parts.append(f"cut {lo:g}-{hi:g}x median: {sel.mean():5.1%} of centres, error mean "
+                             f"{x['dv'][sel].mean():+.3f} RMS {np.sqrt(np.mean(x['dv'][sel] ** 2)):.3f} px")
+        say(f"    laser {laser} centres against the true centre line: " + "; ".join(parts))
 
 
 def crossing_variants(name: str, scan: str, prior: ArmPrior, draws: int) -> None:
@@ -108,11 +144,14 @@ def crossing_variants(name: str, scan: str, prior: ArmPrior, draws: int) -> None
         f = mt.measure_sphere(P, 2 * R, ransac_threshold_mm=0.2, trim_sigma=5.0, seed=0).figures()
         return 1e3 * f["size_error_mm"], 1e3 * f["form_error_mm"]
 
-    def refined(p: np.ndarray, T: np.ndarray, half: float, angle: float) -> np.ndarray:
+    width = df["width"].to_numpy(np.float64)
+
+    def refined(p: np.ndarray, T: np.ndarray, half: float, angle: float, ratio: float) -> np.ndarray:
         frames, views = camera_centres(fr, pc, p)
         k = np.searchsorted(tp["frame"].to_numpy(), frames)
         return refine_frames(fr, lab, p, views, prior, frames=frames, times=tp["time_s"].to_numpy()[k],
-                             origins=T[k, :3, 3], half_mm=half, min_angle_deg=angle, threads=2).points
+                             origins=T[k, :3, 3], half_mm=half, min_angle_deg=angle,
+                             crossing_mask=usable_centres(lab, width, ratio), threads=2).points
 
     posed = [(pt, Tt)]
     for k in range(draws):
@@ -123,10 +162,12 @@ def crossing_variants(name: str, scan: str, prior: ArmPrior, draws: int) -> None
     say(f"  {name}/{scan} ({truth['preset']}), true poses size {base:+.2f}; {draws} draws unrefined: "
         f"size mean {raw[:, 0].mean():+.2f} RMS {np.sqrt(np.mean(raw[:, 0] ** 2)):.2f}, "
         f"form mean {raw[:, 1].mean():.1f}")
-    for half, angle in VARIANTS:
-        shift = sphere(refined(pt, Tt, half, angle))[0] - base
-        f = np.array([sphere(refined(p, T, half, angle)) for p, T in posed[1:]])
-        say(f"    half {half:.1f} mm, angle >= {angle:2.0f} deg: true-pose size shift {shift:+6.2f};  "
+    centre_error_by_cut(cap, scan, df)
+    for half, angle, ratio in VARIANTS:
+        shift = sphere(refined(pt, Tt, half, angle, ratio))[0] - base
+        f = np.array([sphere(refined(p, T, half, angle, ratio)) for p, T in posed[1:]])
+        cut = f"cut <= {ratio:g}x" if ratio else "any cut  "
+        say(f"    half {half:.1f} mm, angle >= {angle:2.0f} deg, {cut}: true-pose size shift {shift:+6.2f};  "
             f"draws size mean {f[:, 0].mean():+6.2f} RMS {np.sqrt(np.mean(f[:, 0] ** 2)):5.2f}, "
             f"form mean {f[:, 1].mean():5.1f}")
 
@@ -179,7 +220,9 @@ def main(argv: list[str] | None = None) -> int:
         f = mt.measure_sphere(P, 2 * R, ransac_threshold_mm=0.2, trim_sigma=5.0, seed=0).figures()
         return 1e3 * f["size_error_mm"], 1e3 * f["form_error_mm"]
 
-    ref = refine_frames(fr, lab, pt, views, prior, frames=frames, times=times, origins=origins, threads=2)
+    mask = usable_centres(lab, df["width"].to_numpy(np.float64))  # as the workflow's fuse stage
+    ref = refine_frames(fr, lab, pt, views, prior, frames=frames, times=times, origins=origins,
+                        crossing_mask=mask, threads=2)
     cr = ref.crossings
     say(f"=== {a.capture}/{a.scan}: TRUE camera, laser planes, hand-eye and poses; {len(pt)} points, "
         f"{len(cr.gap)} crossings; prior {prior.sigma_mm * 1e3:.2f} µm, tau {prior.corr_time_s} s")
@@ -231,7 +274,7 @@ def main(argv: list[str] | None = None) -> int:
         + " ".join(f"{frames[i]}:{per[i]:+.1f}" for i in k[::10]))
     if a.variant_captures:
         say(f"=== the refinement's crossing parameters (default: half {HALF_MM} mm, angle >= "
-            f"{MIN_ANGLE_DEG:g} deg), µm")
+            f"{MIN_ANGLE_DEG:g} deg, column cut <= {MAX_WIDTH_RATIO:g}x the laser's median), µm")
         for name in a.variant_captures.split(","):
             crossing_variants(name, a.scan, prior, a.draws)
     RESULTS.mkdir(parents=True, exist_ok=True)

@@ -418,6 +418,9 @@ def _fuse(p: argparse.ArgumentParser) -> None:
                    help="the refinement's stripe length fitted either side of a crossing (mm)")
     p.add_argument("--crossing-min-angle-deg", type=_positive, default=30.0,
                    help="smallest angle between two crossing stripes the refinement uses (deg)")
+    p.add_argument("--crossing-max-width-ratio", type=float, default=2.0,
+                   help="centres whose column cut is longer than this x their laser's median make "
+                        "no crossings (0: any)")
     _threads(p)
 
     def run(a: argparse.Namespace) -> int:
@@ -431,6 +434,7 @@ def _fuse(p: argparse.ArgumentParser) -> None:
             arm_precision_rad=a.arm_precision_rad, arm_smooth_fraction=a.arm_smooth_fraction,
             arm_corr_time_s=a.arm_corr_time_s, crossing_half_mm=a.crossing_half_mm,
             crossing_min_angle_deg=a.crossing_min_angle_deg,
+            crossing_max_width_ratio=a.crossing_max_width_ratio,
         )
         return 0
 

@@ -35,7 +35,7 @@ import numpy as np
 
 from crossline.atomic import atomic_path, write_json
 from crossline.errors import StageError
-from crossline.refine import HALF_MM, MIN_ANGLE_DEG, ArmPrior
+from crossline.refine import HALF_MM, MAX_WIDTH_RATIO, MIN_ANGLE_DEG, ArmPrior, usable_centres
 
 __all__ = [
     "LASER_CODES",
@@ -205,6 +205,8 @@ def fuse_cloud(
     frame_table: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     crossing_half_mm: float = HALF_MM,
     crossing_min_angle_deg: float = MIN_ANGLE_DEG,
+    widths: np.ndarray | None = None,
+    crossing_max_width_ratio: float = MAX_WIDTH_RATIO,
     threads: int = 1,
 ) -> FusedCloud:
     """Optional pose refinement, statistical outlier removal, optional voxel down-sampling
@@ -217,7 +219,10 @@ def fuse_cloud(
     = (frame numbers, times in s, reported flange positions (M, 3)) from the scan's
     frames.csv gives the prior its time correlation and the rotations their centre;
     ``crossing_half_mm`` and ``crossing_min_angle_deg`` are the refinement's stripe length
-    fitted either side of a crossing and the smallest crossing angle it uses.
+    fitted either side of a crossing and the smallest crossing angle it uses; with
+    ``widths`` (N,), each centre's column cut in px, centres cut over
+    ``crossing_max_width_ratio`` x their laser's median make no crossings
+    (:func:`crossline.refine.usable_centres`).
     """
     import open3d as o3d
 
@@ -231,8 +236,9 @@ def fuse_cloud(
     if len(p) == 0:
         raise StageError("no points to fuse")
     if refine_prior is not None:
+        mask = None if widths is None else usable_centres(lab, widths, crossing_max_width_ratio)
         p, stats["refine"] = _refine(p, lab, fr, points_cam, refine_prior, frame_table, threads,
-                                     crossing_half_mm, crossing_min_angle_deg)
+                                     crossing_half_mm, crossing_min_angle_deg, mask)
 
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
     if neighbours > 0 and len(p) > neighbours:
@@ -273,6 +279,7 @@ def _refine(
     p: np.ndarray, lab: np.ndarray, fr: np.ndarray, points_cam: np.ndarray | None,
     prior: ArmPrior, frame_table: tuple[np.ndarray, np.ndarray, np.ndarray] | None, threads: int,
     half_mm: float = HALF_MM, min_angle_deg: float = MIN_ANGLE_DEG,
+    crossing_mask: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Points with refined per-frame poses, and the stats of the refinement (JSON-ready)."""
     from crossline.refine import refine_frames
@@ -296,7 +303,8 @@ def _refine(
                              "not in the scan's frames table")
         times, origins = tt[pos].astype(np.float64), to[pos].astype(np.float64)
     ref = refine_frames(fr, lab, p, views, prior, frames=frames, times=times, origins=origins,
-                        half_mm=half_mm, min_angle_deg=min_angle_deg, threads=threads)
+                        half_mm=half_mm, min_angle_deg=min_angle_deg, crossing_mask=crossing_mask,
+                        threads=threads)
     d = dict(ref.diagnostics)
     # timings go to the log, not to the stats: the same points must give the same bytes
     log.info("pose refinement: %d crossings, %d frames, %.2f s (crossings %.2f s)", d["crossings"],
@@ -481,6 +489,7 @@ def run_fuse(
     arm_corr_time_s: float = 0.3,
     crossing_half_mm: float = HALF_MM,
     crossing_min_angle_deg: float = MIN_ANGLE_DEG,
+    crossing_max_width_ratio: float = MAX_WIDTH_RATIO,
 ) -> FusedCloud:
     """The ``fuse`` stage: points parquet -> fused PLY (+ stats JSON, + STL mesh if asked).
 
@@ -491,7 +500,8 @@ def run_fuse(
     part (the rest of the variance); ``frames`` (the scan's
     frames.csv) gives the frame times and the flange positions; ``crossing_half_mm`` is the
     stripe length fitted either side of a crossing, ``crossing_min_angle_deg`` the smallest
-    crossing angle used.
+    crossing angle used, ``crossing_max_width_ratio`` the longest column cut (over its
+    laser's median) whose centre may make a crossing (0: any; needs the points' ``width``).
     """
     import pandas as pd
 
@@ -517,10 +527,12 @@ def run_fuse(
                 f"(> 0), arm_precision_rad={arm_precision_rad} (> 0 or auto), "
                 f"arm_smooth_fraction={arm_smooth_fraction} (0..1), "
                 f"arm_corr_time_s={arm_corr_time_s} (> 0)") from None
-        if not (crossing_half_mm > 0 and 0 < crossing_min_angle_deg < 90):
+        if not (crossing_half_mm > 0 and 0 < crossing_min_angle_deg < 90
+                and crossing_max_width_ratio >= 0):
             raise StageError(
                 f"pose refinement parameters out of range: crossing_half_mm={crossing_half_mm} "
-                f"(> 0), crossing_min_angle_deg={crossing_min_angle_deg} (0..90)")
+                f"(> 0), crossing_min_angle_deg={crossing_min_angle_deg} (0..90), "
+                f"crossing_max_width_ratio={crossing_max_width_ratio} (>= 0, 0 = off)")
     table = _read_frames(frames) if refine_poses and frames is not None else None
     try:
         df = pd.read_parquet(points)
@@ -542,7 +554,9 @@ def run_fuse(
         xyz[finite], laser[finite], frame[finite], cam, neighbours=neighbours,
         std_ratio=std_ratio, voxel_mm=voxel_mm, normal_radius_mm=normal_radius_mm,
         refine_prior=prior, frame_table=table, crossing_half_mm=crossing_half_mm,
-        crossing_min_angle_deg=crossing_min_angle_deg, threads=threads,
+        crossing_min_angle_deg=crossing_min_angle_deg,
+        widths=df["width"].to_numpy(np.float64)[finite] if "width" in df else None,
+        crossing_max_width_ratio=crossing_max_width_ratio, threads=threads,
     )
     cloud.stats["n_non_finite"] = int((~finite).sum())
     cloud.stats["parameters"] = {"neighbours": neighbours, "std_ratio": std_ratio,
@@ -553,6 +567,7 @@ def run_fuse(
             arm_precision_mm=arm_precision_mm, arm_precision_rad=arm_precision_rad,
             arm_smooth_fraction=arm_smooth_fraction, arm_corr_time_s=arm_corr_time_s,
             crossing_half_mm=crossing_half_mm, crossing_min_angle_deg=crossing_min_angle_deg,
+            crossing_max_width_ratio=crossing_max_width_ratio,
             frames_file=None if frames is None else Path(frames).name)
     cloud.stats["points_file"] = points.name
     write_ply(out, cloud)

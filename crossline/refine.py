@@ -48,11 +48,13 @@ __all__ = [
     "find_crossings",
     "refine_frames",
     "solve_errors",
+    "usable_centres",
 ]
 
 LEVER_MM = 300.0  # rotation prior from the position figure: the error spread over one arm link
 HALF_MM = 0.6  # stripe fitted either side of a crossing, mm
 MIN_ANGLE_DEG = 30.0  # stripes crossing at a smaller angle are not used
+MAX_WIDTH_RATIO = 2.0  # centres of column cuts longer than this x their laser's median: no crossings
 
 
 @dataclass(frozen=True)
@@ -126,6 +128,29 @@ class Refinement:
 
 
 # ----------------------------------------------------------------------------- stripes
+
+
+def usable_centres(laser: np.ndarray, width: np.ndarray,
+                   max_ratio: float = MAX_WIDTH_RATIO) -> np.ndarray:
+    """Centres (N,) bool whose column cut is at most ``max_ratio`` x their laser's median cut.
+
+    A cut much longer than its laser's typical one crosses the stripe where it runs steeply
+    through the column (or two stripes merged), and its per-column centre is biased: on the
+    compact rig's ball, cuts over twice the median lie 0.2-0.3 px off the true centre line,
+    the others 0.02-0.05 px (benchmarks/bench_refine_bias.py). Such centres may still be
+    measured points, but must not decide a crossing. ``max_ratio`` 0 (or inf) keeps all.
+    """
+    lab = np.asarray(laser)
+    w = np.asarray(width, dtype=np.float64)
+    keep = np.ones(len(w), bool)
+    if not max_ratio or not np.isfinite(max_ratio):
+        return keep
+    for code in np.unique(lab):
+        m = (lab == code) & np.isfinite(w)
+        if m.any():
+            keep[lab == code] &= ~(w[lab == code] > max_ratio * np.median(w[m]))
+    return keep
+
 
 
 def _stripes(frame_pos: np.ndarray, laser: np.ndarray, p: np.ndarray):
@@ -499,6 +524,7 @@ def refine_frames(
     origins: np.ndarray | None = None,
     half_mm: float = HALF_MM,
     min_angle_deg: float = MIN_ANGLE_DEG,
+    crossing_mask: np.ndarray | None = None,
     huber: float = 2.0,
     threads: int = 1,
 ) -> Refinement:
@@ -510,7 +536,9 @@ def refine_frames(
     times in s (None: the frames' errors are taken as independent), ``origins`` (F, 3) their
     flange origins (the centre of the orientation error; default the camera centres).
     ``half_mm`` is the half-length of stripe fitted either side of a crossing and
-    ``min_angle_deg`` the smallest angle at which two stripes may cross to be used.
+    ``min_angle_deg`` the smallest angle at which two stripes may cross to be used;
+    ``crossing_mask`` (N,) bool, if given, says which points may make crossings (e.g.
+    :func:`usable_centres`); every point is moved with its frame all the same.
     """
     import time
 
@@ -529,6 +557,11 @@ def refine_frames(
     org = views if origins is None else np.asarray(origins, dtype=np.float64)
     lab = np.asarray(laser, dtype=np.int64)
     use = (lab == 1) | (lab == 2)
+    if crossing_mask is not None:
+        mask = np.asarray(crossing_mask, dtype=bool)
+        if mask.shape != lab.shape:
+            raise ValueError(f"crossing_mask has shape {mask.shape}, the points {lab.shape}")
+        use &= mask
     cr = find_crossings(fpos[use], lab[use], p[use], views, half_mm=half_mm,
                         min_angle_deg=min_angle_deg, threads=threads)
     t1 = time.perf_counter()
@@ -545,6 +578,7 @@ def refine_frames(
         frames=F,
         frames_with_crossings=int(seen.sum()),
         same_frame_crossings=int((cr.frame_a == cr.frame_b).sum()),
+        centres_not_crossing=int((((lab == 1) | (lab == 2)) & ~use).sum()),
         candidates=cr.counts,
         ab_offset_mm=beta,
         correction_rms_mm=float(np.sqrt(np.mean(shift2))),

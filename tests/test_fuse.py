@@ -228,6 +228,23 @@ def test_run_fuse_refines_the_poses(posed_plate, tmp_path):
     pf = ref["per_frame"]
     assert pf["frame"] == list(range(60)) and np.shape(pf["rotation_rad"]) == (60, 3)
     assert len(pf["correction_rms_mm"]) == 60 and max(pf["correction_rms_mm"]) < 0.05
+    assert ref["centres_not_crossing"] == 0  # no cut lengths in these points: every centre
+    assert st["parameters"]["crossing_max_width_ratio"] == 2.0
+
+
+def test_run_fuse_keeps_long_cut_centres_out_of_the_crossings(posed_plate, tmp_path):
+    df = pd.read_parquet(posed_plate / "plate.parquet")
+    long_cut = np.arange(len(df)) % 10 == 0
+    df["width"] = np.where(long_cut, 30.0, 6.0)  # px along the column; the median cut is 6
+    pq = tmp_path / "plate.parquet"
+    write_parquet(pq, df)
+    frames = posed_plate / "frames.csv"
+    a = run_fuse(pq, tmp_path / "a.ply", refine_poses=True, frames=frames)
+    assert a.stats["refine"]["centres_not_crossing"] == long_cut.sum()
+    b = run_fuse(pq, tmp_path / "b.ply", refine_poses=True, frames=frames, crossing_max_width_ratio=0)
+    assert b.stats["refine"]["centres_not_crossing"] == 0
+    # the excluded centres are still points of the cloud, moved with their frames
+    assert len(a.points) == len(b.points)
 
 
 def test_run_fuse_refinement_needs_what_it_names(posed_plate, tmp_path):
@@ -247,6 +264,8 @@ def test_run_fuse_refinement_needs_what_it_names(posed_plate, tmp_path):
         run_fuse(pq, tmp_path / "x.ply", refine_poses=True, crossing_min_angle_deg=90)
     with pytest.raises(StageError, match=r"crossing_half_mm=0 \(> 0\)"):
         run_fuse(pq, tmp_path / "x.ply", refine_poses=True, crossing_half_mm=0)
+    with pytest.raises(StageError, match=r"crossing_max_width_ratio=-1 \(>= 0, 0 = off\)"):
+        run_fuse(pq, tmp_path / "x.ply", refine_poses=True, crossing_max_width_ratio=-1)
     with pytest.raises(StageError, match="frames table not found"):
         run_fuse(pq, tmp_path / "x.ply", refine_poses=True, frames=tmp_path / "none.csv")
     # a faulty frames table is read by the capture's own parser: every faulty row named

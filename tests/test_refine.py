@@ -340,3 +340,38 @@ def test_rendered_stripes_recover_injected_pose_errors(quick_capture: Path, tmp_
     assert ref.diagnostics["crossings"] > 100
     assert err(p_rep) > 0.01
     assert err(ref.points) < 0.25 * err(p_rep)
+
+
+def test_usable_centres_keeps_cuts_up_to_the_ratio_of_each_lasers_median():
+    laser = np.array([1] * 5 + [2] * 5)
+    width = np.array([4, 4, 4, 8, 9, 10, 10, 10, 20, 21], float)
+    keep = R.usable_centres(laser, width, 2.0)
+    # A's median is 4 (cut 8 kept, 9 not), B's is 10 (20 kept, 21 not)
+    assert keep.tolist() == [True] * 4 + [False] + [True] * 4 + [False]
+    assert R.usable_centres(laser, width, 0.0).all()
+    with_nan = width.copy()
+    with_nan[0] = np.nan  # no cut length: nothing to judge by, kept
+    assert R.usable_centres(laser, with_nan, 2.0)[0]
+
+
+def test_biased_long_cut_centres_do_not_move_the_frames():
+    # on an exact ball, a patch of laser A's centres comes from long column cuts and lies
+    # 5 µm inside the surface (as steep stripes' per-column centres do on rendered scans):
+    # used as crossings it moves frames by µm; kept out of them the exact scan stays exact
+    s = Scan("sphere")
+    c = np.array(s.truth["center_base"])
+    on = np.abs(np.linalg.norm(s.p_true - c, axis=1) - 12.5) < 1e-6
+    f = s.frame
+    patch = on & (s.laser == 1) & (f >= 30) & (f < 50) & (s.p_true[:, 0] > c[0])
+    assert patch.sum() > 200
+    shift_base = -0.005 * s.normal[patch]  # mm, into the ball
+    R_cam = s.T[f[patch], :3, :3]
+    s.df.loc[patch, ["x_cam", "y_cam", "z_cam"]] += np.einsum("kji,kj->ki", R_cam, shift_base)
+    width = np.where(patch, 15.0, 5.0)
+    _, plain = s.refine(None)
+    _, masked = s.refine(None, crossing_mask=R.usable_centres(s.laser, width))
+    assert plain.diagnostics["correction_rms_mm"] > 0.001
+    assert masked.diagnostics["correction_rms_mm"] < 0.0002
+    assert masked.diagnostics["centres_not_crossing"] == patch.sum()
+    with pytest.raises(ValueError, match="crossing_mask has shape"):
+        s.refine(None, crossing_mask=np.ones(3, bool))

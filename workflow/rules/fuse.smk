@@ -23,6 +23,7 @@ rule fuse_points:
         arm_corr_time_s=config["fuse"]["arm_corr_time_s"],
         crossing_half_mm=config["fuse"]["crossing_half_mm"],
         crossing_min_angle_deg=config["fuse"]["crossing_min_angle_deg"],
+        crossing_max_width_ratio=config["fuse"]["crossing_max_width_ratio"],
     log:
         "logs/{capture}/fuse_points/{scan}.log",
     benchmark:
@@ -42,4 +43,5 @@ rule fuse_points:
         "--arm-smooth-fraction {params.arm_smooth_fraction} --arm-corr-time-s {params.arm_corr_time_s} "
         "--crossing-half-mm {params.crossing_half_mm} "
         "--crossing-min-angle-deg {params.crossing_min_angle_deg} "
+        "--crossing-max-width-ratio {params.crossing_max_width_ratio} "
         "--threads {threads} > {log} 2>&1"
