@@ -57,7 +57,15 @@ from crossline import metrology as mt  # noqa: E402
 from crossline.capture import open_capture  # noqa: E402
 from crossline.fuse import camera_centres, estimate_normals, orient_normals, read_ply  # noqa: E402
 from crossline.geometry import transform_from_pose, transform_points  # noqa: E402
-from crossline.refine import ArmPrior, correction_transforms, refine_frames  # noqa: E402
+from crossline.refine import (  # noqa: E402
+    HALF_MM,
+    MAX_WIDTH_RATIO,
+    MIN_ANGLE_DEG,
+    ArmPrior,
+    correction_transforms,
+    refine_frames,
+    usable_centres,
+)
 
 CACHE = REPO / "benchmarks" / ".cache" / "refine"
 RESULTS = REPO / "benchmarks" / "results"
@@ -301,14 +309,19 @@ def run_capture(name: str, capture: Path, draws: int) -> dict[str, Any]:
                 "crossing_ab_offset_mm": ref.get("ab_offset_mm"),
                 "correction_rms_mm": ref.get("correction_rms_mm"), "iterations": ref.get("iterations")}
         if draws:
-            row["draws"] = monte_carlo(capture, s, spec, df, X, pt, nrm, truth, prior, draws)
+            row["draws"] = monte_carlo(capture, s, spec, df, X, pt, nrm, truth, prior, draws, fuse_cfg)
         res["scans"][s] = row
     return res
 
 
 def monte_carlo(capture: Path, scan: str, spec: Any, df: pd.DataFrame, X: np.ndarray,
-                pt: np.ndarray, nrm: np.ndarray, truth: dict, prior: ArmPrior, draws: int) -> dict:
-    """Fresh arm-error draws on the same points: figures reported vs refined, and the floor."""
+                pt: np.ndarray, nrm: np.ndarray, truth: dict, prior: ArmPrior, draws: int,
+                fuse_cfg: dict) -> dict:
+    """Fresh arm-error draws on the same points: figures reported vs refined, and the floor.
+
+    The refinement runs as the workflow's fuse stage runs it: ``fuse_cfg``'s crossing
+    window, smallest crossing angle and longest column cut.
+    """
     from crossline.sim.arm import noise_scan
     from crossline.sim.presets import PRESETS
 
@@ -321,12 +334,17 @@ def monte_carlo(capture: Path, scan: str, spec: Any, df: pd.DataFrame, X: np.nda
     fr = df["frame"].to_numpy()
     lab = np.where(df["laser"].astype(str) == "A", 1, 2).astype(np.uint8)
     fr_u, views_true = camera_centres(fr, pc, pt)
+    kw = {"half_mm": float(fuse_cfg.get("crossing_half_mm", HALF_MM)),
+          "min_angle_deg": float(fuse_cfg.get("crossing_min_angle_deg", MIN_ANGLE_DEG)),
+          "crossing_mask": None if "width" not in df else usable_centres(
+              lab, df["width"].to_numpy(np.float64),
+              float(fuse_cfg.get("crossing_max_width_ratio", MAX_WIDTH_RATIO)))}
     up = up_of(orient_normals(pt, nrm, views_true[np.searchsorted(fr_u, fr)]))
     floor = artefact_figures(spec.artefact, spec.nominal, pt, lab, fr, up, capture, truth, scan)
     # the refinement run on the TRUE poses: what it does where there is nothing to correct
     # (only the stripes' own inconsistencies between A and B, and their noise)
     fpos_t = np.searchsorted(tp["frame"].to_numpy(), fr_u)
-    on_true = refine_frames(fr, lab, pt, views_true, prior, frames=fr_u,
+    on_true = refine_frames(fr, lab, pt, views_true, prior, frames=fr_u, **kw,
                             times=tp["time_s"].to_numpy()[fpos_t], origins=Tt[fpos_t, :3, 3], threads=2)
     floor_refined = {**pose_error(on_true.points, pt, nrm),
                      **artefact_figures(spec.artefact, spec.nominal, on_true.points, lab, fr, up, capture,
@@ -340,7 +358,8 @@ def monte_carlo(capture: Path, scan: str, spec: Any, df: pd.DataFrame, X: np.nda
         frames, views = camera_centres(fr, pc, p)
         fpos = np.searchsorted(tp["frame"].to_numpy(), frames)
         t = time.perf_counter()
-        ref = refine_frames(fr, lab, p, views, prior, frames=frames, times=tp["time_s"].to_numpy()[fpos],
+        ref = refine_frames(fr, lab, p, views, prior, frames=frames, **kw,
+                            times=tp["time_s"].to_numpy()[fpos],
                             origins=Tr[fpos, :3, 3], threads=2)
         secs.append(time.perf_counter() - t)
         for tag, q in (("reported", p), ("refined", ref.points)):
