@@ -401,7 +401,8 @@ def _fuse(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mesh", choices=("none", "poisson", "ball_pivoting"), default="none")
     p.add_argument("--mesh-out", type=Path, help="STL to write when --mesh is not none")
     p.add_argument("--refine-poses", type=_bool, default=False,
-                   help="refine each frame's arm pose from the A-B stripe crossings (default false)")
+                   help="refine each frame's arm pose from the A-B stripe crossings (default false "
+                        "here; the workflow's config.yaml turns it on)")
     p.add_argument("--frames", type=Path,
                    help="the scan's frames.csv: frame times and flange positions for the refinement "
                         "(without it the frames' pose errors are taken as independent)")
