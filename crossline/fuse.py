@@ -278,8 +278,7 @@ def fuse_cloud(
 def _refine(
     p: np.ndarray, lab: np.ndarray, fr: np.ndarray, points_cam: np.ndarray | None,
     prior: ArmPrior, frame_table: tuple[np.ndarray, np.ndarray, np.ndarray] | None, threads: int,
-    half_mm: float = HALF_MM, min_angle_deg: float = MIN_ANGLE_DEG,
-    crossing_mask: np.ndarray | None = None,
+    half_mm: float, min_angle_deg: float, crossing_mask: np.ndarray | None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Points with refined per-frame poses, and the stats of the refinement (JSON-ready)."""
     from crossline.refine import refine_frames

@@ -136,9 +136,10 @@ def usable_centres(laser: np.ndarray, width: np.ndarray,
 
     A cut much longer than its laser's typical one crosses the stripe where it runs steeply
     through the column (or two stripes merged), and its per-column centre is biased: on the
-    compact rig's ball, cuts over twice the median lie 0.2-0.3 px off the true centre line,
-    the others 0.02-0.05 px (benchmarks/bench_refine_bias.py). Such centres may still be
-    measured points, but must not decide a crossing. ``max_ratio`` 0 (or inf) keeps all.
+    compact rig's ball, cuts over twice the median lie 0.13 (laser B) to 0.36 px (laser A)
+    off the true centre line on average, the shorter ones 0.01-0.09 px
+    (benchmarks/bench_refine_bias.py). Such centres may still be measured points, but must
+    not decide a crossing. ``max_ratio`` 0 (or inf) keeps all; a NaN width is kept.
     """
     lab = np.asarray(laser)
     w = np.asarray(width, dtype=np.float64)
@@ -146,11 +147,11 @@ def usable_centres(laser: np.ndarray, width: np.ndarray,
     if not max_ratio or not np.isfinite(max_ratio):
         return keep
     for code in np.unique(lab):
-        m = (lab == code) & np.isfinite(w)
-        if m.any():
-            keep[lab == code] &= ~(w[lab == code] > max_ratio * np.median(w[m]))
+        sel = lab == code
+        known = sel & np.isfinite(w)
+        if known.any():
+            keep[sel] = ~(w[sel] > max_ratio * np.median(w[known]))
     return keep
-
 
 
 def _stripes(frame_pos: np.ndarray, laser: np.ndarray, p: np.ndarray):
@@ -556,12 +557,13 @@ def refine_frames(
     views = np.asarray(viewpoints, dtype=np.float64)
     org = views if origins is None else np.asarray(origins, dtype=np.float64)
     lab = np.asarray(laser, dtype=np.int64)
-    use = (lab == 1) | (lab == 2)
+    ab = (lab == 1) | (lab == 2)
+    use = ab
     if crossing_mask is not None:
         mask = np.asarray(crossing_mask, dtype=bool)
         if mask.shape != lab.shape:
             raise ValueError(f"crossing_mask has shape {mask.shape}, the points {lab.shape}")
-        use &= mask
+        use = ab & mask
     cr = find_crossings(fpos[use], lab[use], p[use], views, half_mm=half_mm,
                         min_angle_deg=min_angle_deg, threads=threads)
     t1 = time.perf_counter()
@@ -578,7 +580,7 @@ def refine_frames(
         frames=F,
         frames_with_crossings=int(seen.sum()),
         same_frame_crossings=int((cr.frame_a == cr.frame_b).sum()),
-        centres_not_crossing=int((((lab == 1) | (lab == 2)) & ~use).sum()),
+        centres_not_crossing=int((ab & ~use).sum()),
         candidates=cr.counts,
         ab_offset_mm=beta,
         correction_rms_mm=float(np.sqrt(np.mean(shift2))),
