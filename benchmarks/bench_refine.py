@@ -314,6 +314,38 @@ def run_capture(name: str, capture: Path, draws: int) -> dict[str, Any]:
     return res
 
 
+def arm_draws(capture: Path, truth: dict, scan: str, df: pd.DataFrame, X: np.ndarray,
+              draws: int) -> tuple[pd.DataFrame, np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+    """The scan's true poses (table and flange transforms, frame order) and ``draws`` fresh
+    draws of the simulator's arm model (seeds 1000, 1001, ...): each the points carried to
+    the base frame with the drawn reported poses, and those flange poses."""
+    from crossline.sim.arm import noise_scan
+    from crossline.sim.presets import PRESETS
+
+    tp = pd.read_parquet(capture / truth["scans"][scan]["poses"]).sort_values("frame")
+    Tt = transform_from_pose(tp[["x", "y", "z"]].to_numpy(), tp[["qw", "qx", "qy", "qz"]].to_numpy())
+    dt = float(np.median(np.diff(tp["time_s"].to_numpy())))
+    pos = np.searchsorted(tp["frame"].to_numpy(), df["frame"].to_numpy())
+    pc = df[["x_cam", "y_cam", "z_cam"]].to_numpy()
+    out = []
+    for k in range(draws):
+        Tr, _, _ = noise_scan(Tt, PRESETS[truth["preset"]].arm, dt, np.random.default_rng(1000 + k))
+        out.append((transform_points((Tr @ X)[pos], pc), Tr))
+    return tp, Tt, out
+
+
+def refine_posed(df: pd.DataFrame, p: np.ndarray, T: np.ndarray, tp: pd.DataFrame,
+                 prior: ArmPrior, **kw: Any):
+    """The refinement of points ``p`` posed with flange poses ``T`` (rows of ``tp``), as the
+    fuse stage runs it: camera centres from the points, times and flange origins per frame."""
+    fr = df["frame"].to_numpy()
+    lab = np.where(df["laser"].astype(str) == "A", 1, 2).astype(np.uint8)
+    frames, views = camera_centres(fr, df[["x_cam", "y_cam", "z_cam"]].to_numpy(), p)
+    k = np.searchsorted(tp["frame"].to_numpy(), frames)
+    return refine_frames(fr, lab, p, views, prior, frames=frames, times=tp["time_s"].to_numpy()[k],
+                         origins=T[k, :3, 3], threads=2, **kw)
+
+
 def monte_carlo(capture: Path, scan: str, spec: Any, df: pd.DataFrame, X: np.ndarray,
                 pt: np.ndarray, nrm: np.ndarray, truth: dict, prior: ArmPrior, draws: int,
                 fuse_cfg: dict) -> dict:
@@ -322,18 +354,9 @@ def monte_carlo(capture: Path, scan: str, spec: Any, df: pd.DataFrame, X: np.nda
     The refinement runs as the workflow's fuse stage runs it: ``fuse_cfg``'s crossing
     window, smallest crossing angle and longest column cut.
     """
-    from crossline.sim.arm import noise_scan
-    from crossline.sim.presets import PRESETS
-
-    arm = PRESETS[truth["preset"]].arm
-    tp = pd.read_parquet(capture / truth["scans"][scan]["poses"]).sort_values("frame")
-    Tt = transform_from_pose(tp[["x", "y", "z"]].to_numpy(), tp[["qw", "qx", "qy", "qz"]].to_numpy())
-    dt = float(np.median(np.diff(tp["time_s"].to_numpy())))
-    pos = np.searchsorted(tp["frame"].to_numpy(), df["frame"].to_numpy())
-    pc = df[["x_cam", "y_cam", "z_cam"]].to_numpy()
     fr = df["frame"].to_numpy()
     lab = np.where(df["laser"].astype(str) == "A", 1, 2).astype(np.uint8)
-    fr_u, views_true = camera_centres(fr, pc, pt)
+    fr_u, views_true = camera_centres(fr, df[["x_cam", "y_cam", "z_cam"]].to_numpy(), pt)
     kw = {"half_mm": float(fuse_cfg.get("crossing_half_mm", HALF_MM)),
           "min_angle_deg": float(fuse_cfg.get("crossing_min_angle_deg", MIN_ANGLE_DEG)),
           "crossing_mask": None if "width" not in df else usable_centres(
@@ -341,26 +364,18 @@ def monte_carlo(capture: Path, scan: str, spec: Any, df: pd.DataFrame, X: np.nda
               float(fuse_cfg.get("crossing_max_width_ratio", MAX_WIDTH_RATIO)))}
     up = up_of(orient_normals(pt, nrm, views_true[np.searchsorted(fr_u, fr)]))
     floor = artefact_figures(spec.artefact, spec.nominal, pt, lab, fr, up, capture, truth, scan)
+    tp, Tt, posed = arm_draws(capture, truth, scan, df, X, draws)
     # the refinement run on the TRUE poses: what it does where there is nothing to correct
     # (only the stripes' own inconsistencies between A and B, and their noise)
-    fpos_t = np.searchsorted(tp["frame"].to_numpy(), fr_u)
-    on_true = refine_frames(fr, lab, pt, views_true, prior, frames=fr_u, **kw,
-                            times=tp["time_s"].to_numpy()[fpos_t], origins=Tt[fpos_t, :3, 3], threads=2)
+    on_true = refine_posed(df, pt, Tt, tp, prior, **kw)
     floor_refined = {**pose_error(on_true.points, pt, nrm),
                      **artefact_figures(spec.artefact, spec.nominal, on_true.points, lab, fr, up, capture,
                                         truth, scan)}
     rows: dict[str, dict[str, list[float]]] = {"reported": {}, "refined": {}}
     secs = []
-    for k in range(draws):
-        Tr, _, _ = noise_scan(Tt, arm, dt, np.random.default_rng(1000 + k))
-        M = (Tr @ X)[pos]
-        p = transform_points(M, pc)
-        frames, views = camera_centres(fr, pc, p)
-        fpos = np.searchsorted(tp["frame"].to_numpy(), frames)
+    for p, Tr in posed:
         t = time.perf_counter()
-        ref = refine_frames(fr, lab, p, views, prior, frames=frames, **kw,
-                            times=tp["time_s"].to_numpy()[fpos],
-                            origins=Tr[fpos, :3, 3], threads=2)
+        ref = refine_posed(df, p, Tr, tp, prior, **kw)
         secs.append(time.perf_counter() - t)
         for tag, q in (("reported", p), ("refined", ref.points)):
             figs = {**pose_error(q, pt, nrm),

@@ -24,7 +24,8 @@ so whatever it does comes from the stripes. Printed (µm):
   ``fuse.crossing_max_width_ratio``) varied:
   on the workflow's points (estimated calibration) the size shift the refinement makes with
   the TRUE poses, and over ``--draws`` fresh arm draws (bench_refine's draws) the size error's
-  mean and RMS and the form error's mean (µm).
+  mean and RMS and the form error's mean (µm); and the same parameters on the analytic
+  white-noise ball of tests/test_refine.py (what its bounds say about them).
 
 Results: benchmarks/results/refine_bias.txt.
 """
@@ -45,7 +46,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from bench_refine import CACHE, capture_path, true_points  # noqa: E402
+from bench_refine import CACHE, arm_draws, capture_path, refine_posed, true_points  # noqa: E402
 
 from crossline import metrology as mt  # noqa: E402
 from crossline.camera import Camera  # noqa: E402
@@ -116,10 +117,7 @@ def centre_error_by_cut(cap: Path, scan: str, df: pd.DataFrame) -> None:
 
 
 def crossing_variants(name: str, scan: str, prior: ArmPrior, draws: int) -> None:
-    """Size shift on the true poses and figures over arm draws, per crossing-parameter pair."""
-    from crossline.sim.arm import noise_scan
-    from crossline.sim.presets import PRESETS
-
+    """Size shift on the true poses and figures over arm draws, per crossing-parameter set."""
     cap = capture_path(name)
     interim = CACHE / f"wd-{name}" / "data" / "interim" / name
     points_file = interim / "points" / f"{scan}.parquet"
@@ -127,36 +125,23 @@ def crossing_variants(name: str, scan: str, prior: ArmPrior, draws: int) -> None
         say(f"  {name}: no points at {points_file} (run bench_refine.py --captures {name}): skipped")
         return
     truth = json.loads((cap / "truth.json").read_text())
-    spec = truth["scans"][scan]
-    R = 0.5 * float(spec["diameter"])
+    R = 0.5 * float(truth["scans"][scan]["diameter"])
     df = pd.read_parquet(points_file)
     X = np.array(json.loads((interim / "calibration" / "handeye.json").read_text())["T_tool_cam"])
     pt = true_points(cap, scan, df, X)
-    tp = pd.read_parquet(cap / spec["poses"]).sort_values("frame")
-    Tt = transform_from_pose(tp[["x", "y", "z"]].to_numpy(), tp[["qw", "qx", "qy", "qz"]].to_numpy())
-    dt = float(np.median(np.diff(tp["time_s"].to_numpy())))
-    pos = np.searchsorted(tp["frame"].to_numpy(), df["frame"].to_numpy())
-    pc = df[["x_cam", "y_cam", "z_cam"]].to_numpy()
-    fr = df["frame"].to_numpy()
     lab = np.where(df["laser"].astype(str) == "A", 1, 2)
+    width = df["width"].to_numpy(np.float64)
 
     def sphere(P: np.ndarray) -> tuple[float, float]:
         f = mt.measure_sphere(P, 2 * R, ransac_threshold_mm=0.2, trim_sigma=5.0, seed=0).figures()
         return 1e3 * f["size_error_mm"], 1e3 * f["form_error_mm"]
 
-    width = df["width"].to_numpy(np.float64)
-
     def refined(p: np.ndarray, T: np.ndarray, half: float, angle: float, ratio: float) -> np.ndarray:
-        frames, views = camera_centres(fr, pc, p)
-        k = np.searchsorted(tp["frame"].to_numpy(), frames)
-        return refine_frames(fr, lab, p, views, prior, frames=frames, times=tp["time_s"].to_numpy()[k],
-                             origins=T[k, :3, 3], half_mm=half, min_angle_deg=angle,
-                             crossing_mask=usable_centres(lab, width, ratio), threads=2).points
+        return refine_posed(df, p, T, tp, prior, half_mm=half, min_angle_deg=angle,
+                            crossing_mask=usable_centres(lab, width, ratio)).points
 
-    posed = [(pt, Tt)]
-    for k in range(draws):
-        Tr, _, _ = noise_scan(Tt, PRESETS[truth["preset"]].arm, dt, np.random.default_rng(1000 + k))
-        posed.append((transform_points((Tr @ X)[pos], pc), Tr))
+    tp, Tt, drawn = arm_draws(cap, truth, scan, df, X, draws)
+    posed = [(pt, Tt), *drawn]
     base = sphere(pt)[0]
     raw = np.array([sphere(p) for p, _ in posed[1:]])
     say(f"  {name}/{scan} ({truth['preset']}), true poses size {base:+.2f}; {draws} draws unrefined: "
@@ -170,6 +155,33 @@ def crossing_variants(name: str, scan: str, prior: ArmPrior, draws: int) -> None
         say(f"    half {half:.1f} mm, angle >= {angle:2.0f} deg, {cut}: true-pose size shift {shift:+6.2f};  "
             f"draws size mean {f[:, 0].mean():+6.2f} RMS {np.sqrt(np.mean(f[:, 0] ** 2)):5.2f}, "
             f"form mean {f[:, 1].mean():5.1f}")
+
+
+def analytic_variants() -> None:
+    """The same parameters on the analytic white-noise ball of tests/test_refine.py.
+
+    Noise (2 µm along the rays) and no pose error: the corrections the refinement makes from
+    noise alone, in units of the arm prior's sigma; then pose errors injected (seeds 3-10 of
+    the test's arm model) and the residual scatter of the refined ball over the noise-only
+    one. test_noisy_scan_no_pose_error_is_not_distorted bounds both at the defaults (seed 3):
+    0.25 sigma and 1.15x.
+    """
+    from crossline.geometry import fit_sphere
+    from tests.test_refine import PRIOR, Scan, arm_errors
+
+    s = Scan("sphere", noise=0.002)
+    c = np.array(s.truth["center_base"])
+    for half, angle, _ in VARIANTS[:1] + VARIANTS[2:]:
+        p, ref = s.refine(None, half_mm=half, min_angle_deg=angle)
+        on = np.linalg.norm(p - c, axis=1) < 12.6
+        std0 = np.std(fit_sphere(p[on])[2])
+        ratios = [np.std(fit_sphere(s.refine(arm_errors(len(s.T), PRIOR, seed=seed), half_mm=half,
+                                             min_angle_deg=angle)[1].points[on])[2]) / std0
+                  for seed in range(3, 11)]
+        say(f"  half {half:.1f} mm, angle >= {angle:2.0f} deg: noise-only corrections "
+            f"{ref.diagnostics['correction_rms_mm'] / PRIOR.sigma_mm:.3f} sigma; residual scatter "
+            f"with pose errors {ratios[0]:.3f}x the noise-only one (seed 3), mean of 8 seeds "
+            f"{np.mean(ratios):.3f}x")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -277,6 +289,9 @@ def main(argv: list[str] | None = None) -> int:
             f"{MIN_ANGLE_DEG:g} deg, column cut <= {MAX_WIDTH_RATIO:g}x the laser's median), µm")
         for name in a.variant_captures.split(","):
             crossing_variants(name, a.scan, prior, a.draws)
+        say("=== the same parameters on the analytic white-noise ball of tests/test_refine.py "
+            "(no column cuts there)")
+        analytic_variants()
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "refine_bias.txt").write_text("\n".join(LINES) + "\n")
     return 0
