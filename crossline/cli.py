@@ -277,6 +277,9 @@ def _extract_stripes(p: argparse.ArgumentParser) -> None:
     p.add_argument("--relative-noise", type=_auto_or_fraction, default=None,
                    help="gaussian: the stripe's relative intensity noise (speckle contrast) that "
                         "weights the fit, or 'auto' to estimate it in every frame (default)")
+    p.add_argument("--fit-across", type=_bool, default=True,
+                   help="gaussian: refit stripes steeper than 0.3 px per column across the stripe "
+                        "(true, default) or keep the column fit alone (false)")
     p.add_argument("--decoder", choices=("auto", "fast", "opencv"), default="auto",
                    help="PNG decoder: fast (libdeflate + numba), opencv, or auto (fast if installed)")
     p.add_argument("--chunk", default="0/1", help="i/n: process the i-th of n slices (0-based)")
@@ -293,7 +296,7 @@ def _extract_stripes(p: argparse.ArgumentParser) -> None:
             a.capture, a.scan, a.out, extractor=a.extractor, threshold=a.threshold,
             min_width=a.min_width, max_width=a.max_width, sigma=a.sigma, chunk=(i, n),
             threads=a.threads, pad=a.pad, fit_pad=a.fit_pad,
-            relative_noise=a.relative_noise,
+            relative_noise=a.relative_noise, fit_across=a.fit_across,
             decoder=a.decoder,
         )
         return 0

@@ -31,7 +31,16 @@ inverse of its variance ``r^2 yhat^2 + sigma_n^2`` (relative noise ``r``, sensor
 Both noise levels are measured in the frame: ``sigma_n`` from the residuals of the
 background lines, ``r`` from the relative residuals of the bright pixels of a first fit.
 On the virtual rigs it finds the speckle contrast they render (0.15, 0.20) and stays within
-5 % of the Cramér-Rao bound of the centre (``tests/test_stripes.py``).
+5 % of the Cramér-Rao bound of the centre (``tests/test_stripes.py``). A column cuts a steep
+stripe obliquely, and where the stripe is curved (a ball, a cylinder, the edge of a part) the
+profile along the column is skewed towards the centre of curvature, and its fitted centre with
+it: by about ``2.5 sigma_col^2 s^2 v'' / (1 + s^2)^2`` rows for slope ``s`` and curvature
+``v''`` (0.3 px normal to the line on a ring of 100 px radius at slopes 1.5-3, tested), which
+makes a ball small. So stripes steeper than ``ACROSS_SLOPE`` are fitted again *across* the
+stripe (``across=True``): the profile is sampled bilinearly along the normal (each sample the
+mean over the stripe length one column holds, so it sees the column's pixels), fitted with
+the same weighted Gaussian, and the ridge carried along the line back to the column
+(``v = c + t / n_y``, as Steger does).
 
 Steger (:func:`steger`). Gaussian smoothing (``sigma``), Hessian by central differences of
 the smoothed image at the candidate pixels only (the runs above the threshold: the band
@@ -107,6 +116,7 @@ RELATIVE_NOISE_SAMPLE = 4  # gaussian: every 4th clean stripe profile of a frame
 NEIGHBOUR_DV = 2.5  # largest row step between the same stripe in adjacent columns, px
 STEEP_LENGTH_RATIO = 0.67  # runs of a steep stripe in adjacent columns differ in length by less
 RIDGE_FRACTION = 0.5  # Steger: a run's ridge claims weaker than this share of its strongest are dropped
+ACROSS_SLOPE = 0.3  # gaussian: stripes steeper than this (|dv/du|) are refitted across the stripe
 FRAMES_PER_GROUP = 64  # parquet row group = frames [64k, 64k + 64) of the scan
 
 COLUMNS = ("u", "v", "strength", "peak", "width", "width_n", "nx", "ny", "ridge", "flags")
@@ -668,6 +678,102 @@ def _gauss_solve_nb(flat, H, col, r0, lo_w, hi_w, bc, bs, noise2, rel2, full, it
     return rel_ss, rel_n
 
 
+@_jit
+def _normal_profiles_nb(flat, H, W, col, v, nx, ny, half, nbg, full):  # pragma: no cover - compiled
+    """Profiles across the stripe through each centre, sampled bilinearly at 1 px steps.
+
+    Profile ``i`` runs from ``(col, v) - (half + nbg) n`` to ``(col, v) + (half + nbg) n``
+    (``2 (half + nbg) + 1`` samples). Each sample is the mean over the stripe's length that
+    one column holds (``1 / n_y`` px along the tangent, at most 1 px apart), so a profile
+    sees the pixels that the column's own cut sees; a sample touching a clipped pixel is set
+    to full scale (the fit leaves it out). Returns the profiles (flattened), the background
+    line of each (``bc + bs q`` at sample ``q``, fitted to the ``nbg`` samples beyond each
+    end) and whether the whole profile lies inside the frame.
+    """
+    k = col.size
+    n = 2 * (half + nbg) + 1
+    prof = np.zeros(k * n)
+    bc = np.zeros(k)
+    bs = np.zeros(k)
+    inside = np.ones(k, np.bool_)
+    for i in range(k):
+        length = 1.0 / ny[i]
+        m = max(1, int(np.ceil(length - 1e-9)))
+        for q in range(n):
+            t = float(q - half - nbg)
+            acc = 0.0
+            clipped = False
+            for j in range(m):
+                tau = (j + 0.5) * length / m - 0.5 * length
+                x = col[i] + t * nx[i] + tau * ny[i]
+                y = v[i] + t * ny[i] - tau * nx[i]
+                x0 = int(np.floor(x))
+                y0 = int(np.floor(y))
+                if x0 < 0 or y0 < 0 or x0 + 1 >= W or y0 + 1 >= H:
+                    inside[i] = False
+                    break
+                fx = x - x0
+                fy = y - y0
+                p00 = float(flat[x0 * H + y0])
+                p01 = float(flat[x0 * H + y0 + 1])
+                p10 = float(flat[(x0 + 1) * H + y0])
+                p11 = float(flat[(x0 + 1) * H + y0 + 1])
+                if max(max(p00, p01), max(p10, p11)) >= full:
+                    clipped = True
+                acc += ((1.0 - fx) * ((1.0 - fy) * p00 + fy * p01)
+                        + fx * ((1.0 - fy) * p10 + fy * p11))
+            if not inside[i]:
+                break
+            prof[i * n + q] = full if clipped else acc / m
+        if not inside[i]:
+            continue
+        m0 = 0.0
+        sx = 0.0
+        sy = 0.0
+        sxx = 0.0
+        sxy = 0.0
+        for j in range(nbg):
+            for q in (j, n - 1 - j):
+                y = prof[i * n + q]
+                m0 += 1.0
+                sx += q
+                sy += y
+                sxx += q * q
+                sxy += q * y
+        det = m0 * sxx - sx * sx
+        bs[i] = (m0 * sxy - sx * sy) / det
+        bc[i] = (sy - bs[i] * sx) / m0
+    return prof, bc, bs, inside
+
+
+def _refit_across(flat: np.ndarray, H: int, W: int, col: np.ndarray, v: np.ndarray, nx: np.ndarray,
+                  ny: np.ndarray, s_n: np.ndarray, half: int, noise2: float, rel2: float, full: float,
+                  iterations: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gaussian fit of the profile across the stripe (along ``n``) at each listed centre.
+
+    Returns the row where the fitted ridge crosses the centre's column, the sigma across the
+    stripe, and which refits are kept: converged, within a pixel of the column fit's ridge, and
+    with a width across the stripe that agrees with the column fit's (0.6-1.6x: otherwise
+    the profile ran into another stripe or a shadow edge).
+    """
+    nbg = BG_FIT_PIXELS
+    prof, bc, bs, inside = _normal_profiles_nb(flat, H, W, col, v, nx, ny, half, nbg, full)
+    m = col.size
+    n = 2 * (half + nbg) + 1
+    a = np.zeros(m)
+    c = np.zeros(m)
+    s = np.zeros(m)
+    ok = inside.copy()
+    _gauss_solve_nb(prof, n, np.arange(m, dtype=np.int64), np.zeros(m, np.int64),
+                    np.full(m, nbg, np.int64), np.full(m, n - 1 - nbg, np.int64), bc, bs, noise2,
+                    rel2, full, iterations, False, a, c, s, ok, np.zeros(m, np.uint8))
+    t = c - (half + nbg)  # offset of the ridge from the centre, along n
+    with np.errstate(invalid="ignore", divide="ignore"):
+        keep = ok & (np.abs(t) <= 1.0) & (s > 0.6 * s_n) & (s < 1.6 * s_n)
+    # along the line from the ridge point back to the centre's column (Steger's v = r + t / n_y)
+    return v + t / ny, s, keep
+
+
 def gaussian(
     img: np.ndarray,
     threshold: float = 0.15,
@@ -678,6 +784,7 @@ def gaussian(
     iterations: int = 10,
     return_info: bool = False,
     transposed: bool = False,
+    across: bool = True,
 ) -> dict[str, np.ndarray] | tuple[dict[str, np.ndarray], dict[str, float]]:
     """Weighted least-squares Gaussian profile of every stripe segment of every column.
 
@@ -691,6 +798,11 @@ def gaussian(
     clipped pixels are left out. ``relative_noise=None`` estimates ``r`` from the frame itself:
     every ``RELATIVE_NOISE_SAMPLE``-th clean profile is fitted with ``r = 0.15`` first, the
     relative residuals of their bright pixels give ``r``, then every profile is fitted with it.
+    With ``across``, stripes steeper than ``ACROSS_SLOPE`` rows per column (slope from the
+    neighbouring columns' centres) are fitted again across the stripe (module doc), which
+    removes the column cut's bias towards the centre of curvature of a curved stripe; a refit
+    that does not converge within a pixel of the column fit, or whose width disagrees with it,
+    leaves the column fit.
     Returns a centre table (module doc) in frame-local pixels, sorted by (u, v)
     (``strength``: the fitted profile's integral, ``width_n``: its FWHM across the stripe),
     and with ``return_info`` also ``{"noise_dn": sigma_n, "relative_noise": r}``.
@@ -743,10 +855,23 @@ def gaussian(
     wn_run = width * ny
     typical = np.median(wn_run[clean]) if clean.any() else np.median(wn_run)
     flags[(width > max_width) | (wn_run > MERGE_FACTOR * typical)] |= MERGED
+    s_n = s * ny  # sigma across the stripe
+    if across:
+        # a column cuts a steep, curved stripe obliquely: the profile along it is skewed
+        # towards the centre of curvature and its fitted centre with it (by ~2.5 sigma_col^2
+        # s^2 v'' / (1 + s^2)^2 rows); across the stripe the profile is symmetric
+        single = (flags & (CLOSE | EDGE | MERGED)) == 0
+        steep = np.flatnonzero(ok & (np.abs(slope) >= ACROSS_SLOPE) & single)
+        if steep.size:
+            half = int(np.ceil(0.5 * typical)) + int(pad)
+            v_x, s_x, keep = _refit_across(flat, H, W, col[steep], c[steep], nx[steep], ny[steep],
+                                           s_n[steep], half, noise2, rel * rel, full, int(iterations))
+            v[steep[keep]] = v_x[keep]
+            s_n[steep[keep]] = s_x[keep]
     out = {
         "u": u, "v": v, "strength": a * s * np.sqrt(2.0 * np.pi),
         "peak": _run_peaks(flat, H, col, r0, r1), "width": width,
-        "width_n": 2.0 * np.sqrt(2.0 * np.log(2.0)) * s * ny, "nx": nx, "ny": ny,
+        "width_n": 2.0 * np.sqrt(2.0 * np.log(2.0)) * s_n, "nx": nx, "ny": ny,
         "ridge": np.full(k, np.nan), "flags": flags,
     }
     if not ok.all():
@@ -963,12 +1088,13 @@ def extract(
     pad: int = 2,
     fit_pad: int = 6,
     relative_noise: float | None = None,
+    fit_across: bool = True,
 ) -> dict[str, np.ndarray]:
     """Centre table of one frame with the chosen extractor (one of :data:`EXTRACTORS`)."""
     if extractor == "grey_centre":
         return grey_centre(img, threshold, min_width, max_width, pad)
     if extractor == "gaussian":
-        return gaussian(img, threshold, min_width, max_width, fit_pad, relative_noise)
+        return gaussian(img, threshold, min_width, max_width, fit_pad, relative_noise, across=fit_across)
     if extractor == "steger":
         return steger(img, threshold, min_width, max_width, sigma)
     raise ValueError(f"unknown extractor {extractor!r}; expected one of {EXTRACTORS}")
@@ -1042,7 +1168,7 @@ def _frame_work(extractor: str, params: dict[str, Any]):
     if extractor == "gaussian":
         kw = {"threshold": params["threshold"], "min_width": params["min_width"],
               "max_width": params["max_width"], "pad": params["fit_pad"],
-              "relative_noise": params["relative_noise"]}
+              "relative_noise": params["relative_noise"], "across": params["fit_across"]}
 
         def fit(i: int, imT: np.ndarray) -> dict[str, Any]:
             c, info = gaussian(imT, **kw, return_info=True, transposed=True)
@@ -1077,6 +1203,7 @@ def run_extract_stripes(
     pad: int = 2,
     fit_pad: int = 6,
     relative_noise: float | None = None,
+    fit_across: bool = True,
     decoder: str = "auto",
 ) -> dict[str, Any]:
     """Extract the stripe centres of one scan's frames (or one chunk of them) to parquet.
@@ -1107,6 +1234,7 @@ def run_extract_stripes(
     elif extractor == "gaussian":
         params["fit_pad"] = int(fit_pad)
         params["relative_noise"] = None if relative_noise is None else float(relative_noise)
+        params["fit_across"] = bool(fit_across)
     else:
         params["pad"] = int(pad)
     meta: dict[str, Any] = {

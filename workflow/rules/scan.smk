@@ -17,6 +17,7 @@ rule extract_stripes:
         pad=config["stripes"]["pad"],
         fit_pad=config["stripes"]["fit_pad"],
         relative_noise=config["stripes"]["relative_noise"],
+        fit_across=config["stripes"]["fit_across"],
     log:
         "logs/{capture}/extract_stripes/{scan}.part{i}-of-{n}.log",
     benchmark:
@@ -31,6 +32,7 @@ rule extract_stripes:
         "--out {output.part} --extractor {params.extractor} --threshold {params.threshold} "
         "--min-width {params.min_width} --max-width {params.max_width} --sigma {params.sigma} "
         "--pad {params.pad} --fit-pad {params.fit_pad} --relative-noise {params.relative_noise} "
+        "--fit-across {params.fit_across} "
         "--chunk {wildcards.i}/{wildcards.n} --threads {threads} > {log} 2>&1"
 
 
