@@ -747,14 +747,14 @@ def _normal_profiles_nb(flat, H, W, col, v, nx, ny, half, nbg, full):  # pragma:
 
 
 def _refit_across(flat: np.ndarray, H: int, W: int, col: np.ndarray, v: np.ndarray, nx: np.ndarray,
-                  ny: np.ndarray, s_n: np.ndarray, half: int, noise2: float, rel2: float, full: float,
-                  iterations: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  ny: np.ndarray, half: int, noise2: float, rel2: float, full: float,
+                  iterations: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Gaussian fit of the profile across the stripe (along ``n``) at each listed centre.
 
-    Returns the row where the fitted ridge crosses the centre's column, the sigma across the
-    stripe, and which refits are kept: converged, within a pixel of the column fit's ridge, and
-    with a width across the stripe that agrees with the column fit's (0.6-1.6x: otherwise
-    the profile ran into another stripe or a shadow edge).
+    Returns the row where the fitted ridge crosses the centre's column, the amplitude and
+    sigma across the stripe, and which refits are kept: converged, within a pixel of the
+    start, and as wide as the frame's other refits (0.6-1.6x their median: otherwise the
+    profile ran into another stripe or a shadow edge).
     """
     nbg = BG_FIT_PIXELS
     prof, bc, bs, inside = _normal_profiles_nb(flat, H, W, col, v, nx, ny, half, nbg, full)
@@ -767,11 +767,13 @@ def _refit_across(flat: np.ndarray, H: int, W: int, col: np.ndarray, v: np.ndarr
     _gauss_solve_nb(prof, n, np.arange(m, dtype=np.int64), np.zeros(m, np.int64),
                     np.full(m, nbg, np.int64), np.full(m, n - 1 - nbg, np.int64), bc, bs, noise2,
                     rel2, full, iterations, False, a, c, s, ok, np.zeros(m, np.uint8))
-    t = c - (half + nbg)  # offset of the ridge from the centre, along n
-    with np.errstate(invalid="ignore", divide="ignore"):
-        keep = ok & (np.abs(t) <= 1.0) & (s > 0.6 * s_n) & (s < 1.6 * s_n)
+    t = c - (half + nbg)  # offset of the ridge from the start, along n
+    keep = ok & (np.abs(t) <= 1.0)
+    if keep.any():
+        typical = np.median(s[keep])
+        keep &= (s > 0.6 * typical) & (s < 1.6 * typical)
     # along the line from the ridge point back to the centre's column (Steger's v = r + t / n_y)
-    return v + t / ny, s, keep
+    return v + t / ny, a, s, keep
 
 
 def gaussian(
@@ -843,11 +845,12 @@ def gaussian(
             clean = ok1 & ((fl & SATURATED) == 0) & (rel_n > 0)
             if clean.any():
                 rel = float(np.sqrt(max(rel_ss[clean].sum() / rel_n[clean].sum(), 0.0)))
-    _gauss_solve_nb(flat, H, col, r0, lo, hi, bc, bs, noise2, rel * rel, full, int(iterations),
-                    False, a, c, s, ok, flags)
+    # with ``across``, the windows' intensity centroids (no Gauss-Newton step) find the
+    # stripes' slopes; only the centres not refitted across are fitted along their column
+    _gauss_solve_nb(flat, H, col, r0, lo, hi, bc, bs, noise2, rel * rel, full,
+                    0 if across else int(iterations), False, a, c, s, ok, flags)
     u = col.astype(np.float64)
     width = (r1 - r0 + 1).astype(np.float64)
-    v = np.where(ok, c, np.nan)
     slope = _slopes_nb(col, np.where(ok, c, 0.5 * (r0 + r1)), W, width)
     ny = 1.0 / np.sqrt(1.0 + slope * slope)
     nx = -slope * ny
@@ -855,19 +858,28 @@ def gaussian(
     wn_run = width * ny
     typical = np.median(wn_run[clean]) if clean.any() else np.median(wn_run)
     flags[(width > max_width) | (wn_run > MERGE_FACTOR * typical)] |= MERGED
-    s_n = s * ny  # sigma across the stripe
     if across:
         # a column cuts a steep, curved stripe obliquely: the profile along it is skewed
         # towards the centre of curvature and its fitted centre with it (by ~2.5 sigma_col^2
         # s^2 v'' / (1 + s^2)^2 rows); across the stripe the profile is symmetric
         single = (flags & (CLOSE | EDGE | MERGED)) == 0
         steep = np.flatnonzero(ok & (np.abs(slope) >= ACROSS_SLOPE) & single)
+        refit = np.zeros(k, bool)
         if steep.size:
             half = int(np.ceil(0.5 * typical)) + int(pad)
-            v_x, s_x, keep = _refit_across(flat, H, W, col[steep], c[steep], nx[steep], ny[steep],
-                                           s_n[steep], half, noise2, rel * rel, full, int(iterations))
-            v[steep[keep]] = v_x[keep]
-            s_n[steep[keep]] = s_x[keep]
+            v_x, a_x, s_x, keep = _refit_across(flat, H, W, col[steep], c[steep], nx[steep], ny[steep],
+                                                half, noise2, rel * rel, full, int(iterations))
+            done = steep[keep]
+            c[done], a[done], s[done] = v_x[keep], a_x[keep], s_x[keep] / ny[done]
+            refit[done] = True
+        along = np.flatnonzero(ok & ~refit)
+        if along.size:
+            a1, c1, s1, ok1, fl = a[along], c[along], s[along], ok[along], flags[along]
+            _gauss_solve_nb(flat, H, col[along], r0[along], lo[along], hi[along], bc[along], bs[along],
+                            noise2, rel * rel, full, int(iterations), False, a1, c1, s1, ok1, fl)
+            a[along], c[along], s[along], ok[along], flags[along] = a1, c1, s1, ok1, fl
+    v = np.where(ok, c, np.nan)
+    s_n = s * ny  # sigma across the stripe
     out = {
         "u": u, "v": v, "strength": a * s * np.sqrt(2.0 * np.pi),
         "peak": _run_peaks(flat, H, col, r0, r1), "width": width,
