@@ -135,10 +135,13 @@ def usable_centres(laser: np.ndarray, width: np.ndarray,
     """Centres (N,) bool whose column cut is at most ``max_ratio`` x their laser's median cut.
 
     A cut much longer than its laser's typical one crosses the stripe where it runs steeply
-    through the column (or two stripes merged), and its per-column centre is biased: on the
-    compact rig's ball, cuts over twice the median lie 0.13 (laser B) to 0.36 px (laser A)
-    off the true centre line on average, the shorter ones 0.01-0.09 px
-    (benchmarks/bench_refine_bias.py). Such centres may still be measured points, but must
+    through the column (or two stripes merged), and a centre fitted along the column is
+    biased there: on the compact rig's ball, cuts over twice the median lie 0.13 (laser B) to
+    0.36 px (laser A) off the true centre line on average, the shorter ones 0.01-0.09 px
+    (benchmarks/bench_refine_bias.py). The Gaussian extractor's fit across steep stripes
+    (``stripes.fit_across``) takes those to 0.02-0.07 px, and with it this filter changes
+    the refined ball by no more than the arm draws' scatter; it stays for the other
+    extractors and for merged stripes. Such centres may still be measured points, but must
     not decide a crossing. ``max_ratio`` 0 (or inf) keeps all; a NaN width is kept.
     """
     lab = np.asarray(laser)

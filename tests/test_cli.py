@@ -20,6 +20,7 @@ def test_auto_or_value_options_parse():
     ex = ["extract-stripes", "CAP", "s", "--out", "s.parquet"]
     assert _parse(*ex).relative_noise is None
     assert _parse(*ex, "--relative-noise", "0.15").relative_noise == 0.15
+    assert _parse(*ex).fit_across is True and _parse(*ex, "--fit-across", "false").fit_across is False
 
 
 FUSE = ["fuse", "p.parquet", "--out", "c.ply"]

@@ -122,6 +122,16 @@ def test_stages_end_to_end_on_analytic_capture(analytic, tmp_path, extractor):
     assert 1.25 < pm["points_per_frame"] / single < 1.34
 
 
+@pytest.mark.parametrize("fit_across", [True, False])
+def test_gaussian_stage_records_fit_across_and_is_on_the_lines(analytic, tmp_path, fit_across):
+    cap, truth, _ = analytic
+    st = tmp_path / "stripes.parquet"
+    meta = run_extract_stripes(cap, "plate", st, extractor="gaussian", fit_across=fit_across, threads=2)
+    assert meta["params"]["fit_across"] is fit_across and read_stripes_meta(st) == meta
+    e, sep = centre_errors(pd.read_parquet(st), truth)
+    assert np.sqrt(np.mean(e[sep > 15] ** 2)) < 0.06
+
+
 def test_chunks_gather_to_the_unsplit_file(analytic, tmp_path):
     cap, _, _ = analytic
     whole = tmp_path / "whole.parquet"
