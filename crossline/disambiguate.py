@@ -355,13 +355,18 @@ def _trace_minority(u: np.ndarray, v: np.ndarray, lab: np.ndarray, merged: np.nd
     a few columns (an occlusion edge, a limb, a steep flank the references lag behind).
     Where two stripes really meet at a shallow angle and a trace passes from one to the
     other, the label changes once, with long runs on both sides: nothing is dropped there.
+    Merged centres (``merged``) link the traces but are skipped in the runs.
     """
     out = np.zeros(u.size, bool)
-    idx = np.flatnonzero(~merged)
-    if idx.size < 3 or not (lab[idx] > 0).any():
+    if u.size < 3 or not (lab > 0).any():
         return out
-    prev = link_traces(np.zeros(idx.size, np.int64), np.zeros(idx.size, "<U1"), u[idx], v[idx])
-    trace, _, _ = trace_position(prev, u[idx])
+    # merged centres link the traces but hold no run: a wide stripe at grazing incidence is
+    # flagged merged here and there along its length, which must not cut it into pieces too
+    # short to show an island
+    prev = link_traces(np.zeros(u.size, np.int64), np.zeros(u.size, "<U1"), u, v)
+    trace_all, _, _ = trace_position(prev, u)
+    idx = np.flatnonzero(~merged)
+    trace = trace_all[idx]
     order = np.lexsort((u[idx], trace))
     t, la = trace[order], lab[idx][order]
     new_run = np.r_[True, (t[1:] != t[:-1]) | (la[1:] != la[:-1])]

@@ -317,3 +317,23 @@ def test_short_label_islands_in_a_stripe_are_dropped_long_runs_stay():
     lab2 = np.r_[lab, np.r_[np.full(3, 1), np.full(97, 0)]]  # its first 3 columns labelled A
     out2 = _trace_minority(u2, v2, lab2, np.zeros(u2.size, bool))
     assert np.flatnonzero(out2).tolist() == np.flatnonzero(out).tolist()
+
+
+def test_island_on_a_stripe_flagged_merged_here_and_there_is_still_an_island():
+    """A wide stripe at grazing incidence is flagged merged in scattered columns (demo part,
+    frame 70: a stale A reference crossed the B stripe over 3 columns between merged ones).
+    Merged centres hold no label but keep the trace whole, so the 3 A labels among the
+    unlabelled rest of the stripe are an island; the merged centres themselves are not."""
+    from crossline.disambiguate import _trace_minority
+
+    u = np.arange(60.0)
+    v = 500.0 + 0.85 * u
+    lab = np.zeros(u.size, int)
+    lab[30:33] = 1
+    merged = np.zeros(u.size, bool)
+    merged[[25, 29, 33, 36, 41]] = True
+    lab[merged] = 0
+    assert np.flatnonzero(_trace_minority(u, v, lab, merged)).tolist() == [30, 31, 32]
+    # a labelled stripe interrupted by merged columns is one run, not islands
+    lab2 = np.where(merged, 0, 2)
+    assert not _trace_minority(u, v, lab2, merged).any()
