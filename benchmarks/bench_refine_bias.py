@@ -17,9 +17,11 @@ so whatever it does comes from the stripes. Printed (µm):
   between its A and B stripes (structure a white-noise model does not have);
 - each laser's radial error on the sphere by polar angle and azimuth quadrant, and the
   refinement's radial shift per frame along the sweep;
-- for every capture of ``--variant-captures`` (bench_refine's names): each laser's stripe
-  centres against the true centre lines by the length of their column cut (over the laser's
-  median: steep or merged stripes), and the refinement's crossing parameters
+- for every capture of ``--variant-captures`` (bench_refine's names): each laser's points,
+  and its raw stripe centres extracted again with the Gaussian fit along the column alone and
+  with the fit across steep stripes (``stripes.fit_across``), against the true centre lines by
+  the length of their column cut (over the laser's median: steep or merged stripes), and the
+  refinement's crossing parameters
   (``fuse.crossing_half_mm``, ``fuse.crossing_min_angle_deg``,
   ``fuse.crossing_max_width_ratio``) varied:
   on the workflow's points (estimated calibration) the size shift the refinement makes with
@@ -64,6 +66,7 @@ from crossline.refine import (  # noqa: E402
     solve_errors,
     usable_centres,
 )
+from crossline.stripes import run_extract_stripes  # noqa: E402
 from crossline.triangulate import triangulate  # noqa: E402
 
 RESULTS = REPO / "benchmarks" / "results"
@@ -86,8 +89,11 @@ def binned(label: str, x: np.ndarray, y: np.ndarray, bins: int = 5) -> None:
 VARIANTS = ((0.6, 30.0, 0.0), (0.6, 30.0, 2.0), (0.4, 30.0, 0.0), (0.6, 60.0, 0.0), (0.4, 60.0, 0.0))
 
 
-def centre_error_by_cut(cap: Path, scan: str, df: pd.DataFrame) -> None:
-    """The centres' true error (px, along the column) by their cut's length over the laser's median."""
+def centre_error_by_cut(cap: Path, scan: str, df: pd.DataFrame, what: str = "centres") -> None:
+    """The centres' true error (px, along the column) by their cut's length over the laser's median.
+
+    ``df``: frame, laser, u, v, width (a points table, or the A and B frames of a stripes table).
+    """
     truth_file = cap / "truth" / f"{scan}_centrelines.parquet"
     if not truth_file.is_file() or "width" not in df:
         return
@@ -113,7 +119,24 @@ def centre_error_by_cut(cap: Path, scan: str, df: pd.DataFrame) -> None:
             if sel.sum():
                 parts.append(f"cut {lo:g}-{hi:g}x median: {sel.mean():5.1%} of centres, error mean "
                              f"{x['dv'][sel].mean():+.3f} RMS {np.sqrt(np.mean(x['dv'][sel] ** 2)):.3f} px")
-        say(f"    laser {laser} centres against the true centre line: " + "; ".join(parts))
+        say(f"    laser {laser} {what} against the true centre line: " + "; ".join(parts))
+
+
+def fit_across_comparison(name: str, cap: Path, scan: str) -> None:
+    """The scan's stripe centres, Gaussian fit along the column alone and with the fit across
+    steep stripes (``stripes.fit_across``), against the true centre lines by cut length: the
+    A and B frames' raw centres, before labelling, trimming and smoothing."""
+    st = yaml.safe_load((REPO / "config.yaml").read_text())["stripes"]
+    rn = st["relative_noise"]
+    for across in (False, True):
+        out = CACHE / f"stripes-{name}-{scan}-across-{str(across).lower()}.parquet"
+        run_extract_stripes(cap, scan, out, extractor="gaussian", threshold=float(st["threshold"]),
+                            min_width=float(st["min_width"]), max_width=float(st["max_width"]),
+                            fit_pad=int(st["fit_pad"]), relative_noise=None if rn == "auto" else float(rn),
+                            fit_across=across, threads=2)
+        s = pd.read_parquet(out, columns=["frame", "lasers", "u", "v", "width"])
+        s = s[s["lasers"].isin(["A", "B"])].rename(columns={"lasers": "laser"})
+        centre_error_by_cut(cap, scan, s, f"stripe centres, {'fit across' if across else 'column fit'}")
 
 
 def crossing_variants(name: str, scan: str, prior: ArmPrior, draws: int) -> None:
@@ -147,7 +170,8 @@ def crossing_variants(name: str, scan: str, prior: ArmPrior, draws: int) -> None
     say(f"  {name}/{scan} ({truth['preset']}), true poses size {base:+.2f}; {draws} draws unrefined: "
         f"size mean {raw[:, 0].mean():+.2f} RMS {np.sqrt(np.mean(raw[:, 0] ** 2)):.2f}, "
         f"form mean {raw[:, 1].mean():.1f}")
-    centre_error_by_cut(cap, scan, df)
+    centre_error_by_cut(cap, scan, df, "points (labelled, trimmed, smoothed)")
+    fit_across_comparison(name, cap, scan)
     for half, angle, ratio in VARIANTS:
         shift = sphere(refined(pt, Tt, half, angle, ratio))[0] - base
         f = np.array([sphere(refined(p, T, half, angle, ratio)) for p, T in posed[1:]])

@@ -802,9 +802,9 @@ def gaussian(
     relative residuals of their bright pixels give ``r``, then every profile is fitted with it.
     With ``across``, stripes steeper than ``ACROSS_SLOPE`` rows per column (slope from the
     neighbouring columns' centres) are fitted again across the stripe (module doc), which
-    removes the column cut's bias towards the centre of curvature of a curved stripe; a refit
-    that does not converge within a pixel of the column fit, or whose width disagrees with it,
-    leaves the column fit.
+    removes the column cut's bias towards the centre of curvature of a curved stripe. The
+    window's intensity centroid is the start; a refit that does not converge within a pixel
+    of it, or whose width is off the frame's other refits, is fitted along its column instead.
     Returns a centre table (module doc) in frame-local pixels, sorted by (u, v)
     (``strength``: the fitted profile's integral, ``width_n``: its FWHM across the stripe),
     and with ``return_info`` also ``{"noise_dn": sigma_n, "relative_noise": r}``.
