@@ -7,7 +7,7 @@ import pytest
 
 from crossline.geometry import invert_transform
 from crossline.sim import arm
-from crossline.sim.optics import RayTable, pixel_offsets, speckle_field
+from crossline.sim.optics import RayTable, lattice_offsets, pixel_offsets, speckle_field
 from crossline.sim.presets import PRESETS
 from crossline.sim.render import Light, RigModel, render_image
 from crossline.sim.scenes import scan_scene
@@ -43,6 +43,11 @@ def test_sample_rays_reproject_to_their_sample_positions(preset):
             want = np.stack([cols[:, None] + x0 + offs[None, :, 0],
                              rows[:, None] + y0 + offs[None, :, 1]], -1).reshape(-1, 2)
             assert np.abs(cam.project(P) - want).max() < 1e-4
+        offs = lattice_offsets(rows, cols, 8)  # one set of offsets per pixel
+        sxy = table.sample_xy(rows, cols, offs)
+        P = np.concatenate([sxy, np.ones((*sxy.shape[:2], 1))], -1).reshape(-1, 3)
+        want = np.stack([cols[:, None] + x0 + offs[..., 0], rows[:, None] + y0 + offs[..., 1]], -1)
+        assert np.abs(cam.project(P) - want.reshape(-1, 2)).max() < 1e-4
         if window == model.scan_window:
             sxy = table.sample_xy_2x2(rows, cols)
             P = np.concatenate([sxy, np.ones((*sxy.shape[:2], 1))], -1).reshape(-1, 3)
@@ -50,6 +55,29 @@ def test_sample_rays_reproject_to_their_sample_positions(preset):
             want = np.stack([cols[:, None] + x0 + offs[None, :, 0],
                              rows[:, None] + y0 + offs[None, :, 1]], -1).reshape(-1, 2)
             assert np.abs(cam.project(P) - want).max() < 1e-4
+
+
+@pytest.mark.parametrize("n", [4, 8])
+def test_lattice_samples_resolve_an_edge_along_the_pixel_grid(n: int) -> None:
+    """The board views' edge samples: one per cell of an n x n grid, each in its own of n² columns
+    and rows, all inside the pixel; a straight edge along the pixel columns is then measured to
+    within 1/(2 n²) of its true coverage in every pixel, with no bias over many pixels (a regular
+    n x n grid errs by up to 1/(2 n), the same way in every pixel along the edge)."""
+    rows, cols = np.divmod(np.arange(5000), 100)
+    offs = lattice_offsets(rows, cols, n)
+    assert offs.shape == (5000, n * n, 2) and np.abs(offs).max() <= 0.5
+    cell = np.floor((offs[0] + 0.5) * n).astype(int)
+    assert len({tuple(c) for c in cell}) == n * n  # one sample per cell
+    for k in range(2):
+        assert len(np.unique(np.round(offs[0, :, k] * n * n, 6))) == n * n  # own column and row
+    rng = np.random.default_rng(5)
+    edge = rng.uniform(-0.5, 0.5, 5000)  # a vertical edge at du = edge in each pixel
+    covered = np.mean(offs[..., 0] < edge[:, None], axis=1)
+    err = covered - (edge + 0.5)
+    assert np.abs(err).max() <= 1.0 / n**2 + 1e-12
+    assert abs(err.mean()) < 0.1 / n**2
+    regular = np.mean(pixel_offsets(n)[None, :, 0] < edge[:, None], axis=1) - (edge + 0.5)
+    assert np.abs(regular).max() > 0.4 / n
 
 
 def _frame(model, scan, laser, frame=None):

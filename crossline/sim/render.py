@@ -7,7 +7,9 @@ Three kinds of light:
 * Board views (lasers off, bright ambient light), ``render_ambient_full``: rays on every 4th
   pixel centre find the surfaces; cells free of edges interpolate the smooth shading, every
   pixel near an albedo edge (circle rims, squares) or a change of surface is traced, and the
-  pixels an edge crosses are supersampled ``EDGE_SS`` x ``EDGE_SS`` (16 rays).
+  pixels an edge crosses are supersampled with ``EDGE_SS`` x ``EDGE_SS`` (64) rays on a sheared
+  grid (``optics.lattice_offsets``: an edge along the pixel rows or columns is resolved to
+  1/64 px, not 1/8, and what is left is unbiased from pixel to pixel).
 * Scan-exposure ambient (faint room light), ``render_ambient_coarse``: traced every
   ``COARSE_STEP`` px and interpolated bilinearly; it only makes the faint background.
 * Laser light, ``render_band``: traced at full resolution inside the *band*, the pixels that can
@@ -40,6 +42,7 @@ from crossline.sim.optics import (
     RayTable,
     SensorModel,
     exact_xy,
+    lattice_offsets,
     pixel_offsets,
     speckle_field,
     standard_normal_f32,
@@ -56,7 +59,7 @@ __all__ = [
     "stripe_truth",
 ]
 
-EDGE_SS = 4  # samples per axis on albedo edges and geometric edges (board views)
+EDGE_SS = 8  # samples per axis (a sheared grid: 64 rays) on albedo and geometric edges (board views)
 BAND_SS = 2  # samples per axis in the smooth part of a laser band
 FINE_SS = 4  # samples per axis where the band's integrand is not smooth
 COARSE_STEP = 8  # px between rays of the faint scan-exposure ambient light
@@ -286,8 +289,7 @@ def render_ambient_full(model: RigModel, scene: Scene, light: Light, window) -> 
     img = cv2.warpAffine(e, M, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                          borderMode=cv2.BORDER_REPLICATE)
     table = model.table(window)
-    offs = pixel_offsets(EDGE_SS)
-    S = len(offs)
+    S = EDGE_SS * EDGE_SS
 
     def cell_pixels(cells):
         ci, cj = np.nonzero(cells)
@@ -340,7 +342,7 @@ def render_ambient_full(model: RigModel, scene: Scene, light: Light, window) -> 
         fallback = []
         for a in range(0, er.size, step):
             r, c, cc = er[a : a + step], ec[a : a + step], ecode[a : a + step]
-            sxy = table.sample_xy(r, c, offs).reshape(-1, 2)
+            sxy = table.sample_xy(r, c, lattice_offsets(r, c, EDGE_SS)).reshape(-1, 2)
             a_s, on = _face_albedo(scene, np.repeat(cc, S), sxy)
             on = on.reshape(-1, S).all(1)
             img[r[on], c[on]] = (a_s.reshape(-1, S).mean(1)[on] * esh[a : a + step][on]).astype(np.float32)
@@ -369,7 +371,7 @@ def render_ambient_full(model: RigModel, scene: Scene, light: Light, window) -> 
         step = max(1, CHUNK // S)
         for a in range(0, len(rows), step):
             r, c = rows[a : a + step], cols[a : a + step]
-            sxy = table.sample_xy(r, c, offs).reshape(-1, 2)
+            sxy = table.sample_xy(r, c, lattice_offsets(r, c, EDGE_SS)).reshape(-1, 2)
             es = _ambient_samples(scene, light, sxy, model.camera)[0]
             img[r, c] = es.reshape(-1, S).mean(1)
     return img
