@@ -9,6 +9,9 @@ in an annulus around the blob (``1 - I / bg`` for dark circles), which makes the
 area centroid of the imaged circle, independent of blur, of the illumination level and of a
 linear illumination gradient across the blob. That area centroid is *not* the projection of
 the circle's centre (perspective bias); :mod:`crossline.calibrate.bias` predicts the offset.
+Chessboards are found by ``cv2.findChessboardCornersSB`` (or the classic finder), and every
+corner is refined by fitting a blurred X-junction to its pixels
+(:mod:`crossline.calibrate.corners`), which has no perspective bias to correct.
 
 Labelling. Points are returned in :meth:`Board.object_points` order (row by row). OpenCV may
 label a grid in any of the orders that map the board onto itself (the symmetric grid and the
@@ -30,6 +33,7 @@ import cv2
 import numpy as np
 
 from crossline.board import Board
+from crossline.calibrate.corners import refine_chessboard_corners
 
 __all__ = [
     "Detection",
@@ -241,13 +245,22 @@ def detect_board(image: np.ndarray, board: Board, *, refine: bool = True) -> Det
     if pts is None:
         return Detection(None, "board found mirrored and cannot be relabelled")
     if board.pattern == "chessboard":
-        if refine and f > 1:
+        if not refine:
+            return Detection(pts)
+        if f > 1:  # corners found on the reduced image: OpenCV's refinement first, at full size
             crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
             grid = pts.reshape(board.rows, board.cols, 2)
             spacing = np.median(np.linalg.norm(np.diff(grid, axis=1), axis=-1))
             win = int(np.clip(0.4 * spacing, 3, 25))
-            pts = cv2.cornerSubPix(img8, pts.astype(np.float32)[:, None], (win, win), (-1, -1), crit)
+            # (N, 1, 2) by reshape, not [:, None]: a new axis has stride 0, which cv2 rejects
+            pts = cv2.cornerSubPix(img8, pts.astype(np.float32).reshape(-1, 1, 2), (win, win), (-1, -1), crit)
             pts = pts.reshape(-1, 2).astype(np.float64)
+        pts, ok = refine_chessboard_corners(img, board, pts)
+        if not ok.all():
+            bad = np.flatnonzero(~ok)
+            where = ", ".join(f"(row {k // board.cols}, col {k % board.cols})" for k in bad[:5])
+            return Detection(None, f"chessboard corners could not be refined: {bad.size} of {ok.size} "
+                                   f"corners show no sharp X-junction, e.g. at {where}")
         return Detection(pts)
     if not refine:
         return Detection(pts)
