@@ -70,6 +70,29 @@ class Board:
         p = self.object_points()
         return float(p[:, 0].max()), float(p[:, 1].max())
 
+    @classmethod
+    def parse(cls, spec: str) -> Board:
+        """A board from ``pattern:COLSxROWS:spacing[:diameter[:dark|light]]``, e.g.
+        ``chessboard:12x9:4`` or ``asymmetric:7x13:2.5:1.5:light`` (mm; chessboards: inner
+        corners and square size)."""
+        form = "pattern:COLSxROWS:spacing[:diameter[:dark|light]]"
+        parts = spec.strip().split(":")
+        if len(parts) < 3 or len(parts) > 5:
+            raise ValueError(f"board {spec!r}: expected {form}, e.g. chessboard:12x9:4")
+        pattern, size, *rest = parts
+        try:
+            cols, rows = (int(v) for v in size.lower().split("x"))
+            nums = [float(v) for v in rest[:2]]
+        except ValueError:
+            raise ValueError(f"board {spec!r}: expected {form}, e.g. chessboard:12x9:4") from None
+        circles = rest[2] if len(rest) == 3 else "dark"
+        if pattern == "chessboard" and len(nums) > 1:
+            raise ValueError(f"board {spec!r}: a chessboard has no circle diameter")
+        diameter = nums[1] if len(nums) > 1 else None
+        if pattern in ("symmetric", "asymmetric") and diameter is None:
+            raise ValueError(f"board {spec!r}: a circle grid needs its circle diameter ({form})")
+        return cls(pattern, cols, rows, nums[0], diameter, circles)  # type: ignore[arg-type]
+
     def to_dict(self) -> dict[str, Any]:
         """The ``board:`` mapping of ``rig.yaml``."""
         d: dict[str, Any] = {

@@ -65,6 +65,15 @@ _positive = _checked(float, lambda x: x > 0, "a number > 0")
 _unit_interval = _checked(float, lambda x: 0 <= x <= 1, "a number in [0, 1]")
 
 
+def _board_spec(text: str):
+    from crossline.board import Board
+
+    try:
+        return Board.parse(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def _threads(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=int, default=1, help="CPU threads to use (default 1)")
 
@@ -91,6 +100,10 @@ def _simulate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pattern", help="laser pattern per period, e.g. A,B,AB or A,B,AB,AB")
     p.add_argument("--bit-depth", type=int, choices=(8, 16), help="image bit depth")
     p.add_argument("--scans", help="comma-separated subset of the preset's scans")
+    p.add_argument("--board", type=_board_spec, metavar="SPEC",
+                   help="calibration board instead of the preset's: pattern:COLSxROWS:spacing"
+                        "[:diameter[:dark|light]], e.g. chessboard:12x9:4 (inner corners, square mm) "
+                        "or symmetric:15x11:3.75:1.875:light")
     p.add_argument("--force", action="store_true", help="overwrite an existing capture folder")
     _threads(p)
 
@@ -101,6 +114,7 @@ def _simulate(p: argparse.ArgumentParser) -> None:
             a.out, preset=a.preset, seed=a.seed, quick=a.quick, frames=a.frames,
             pattern=a.pattern.split(",") if a.pattern else None, bit_depth=a.bit_depth,
             scans=a.scans.split(",") if a.scans else None, force=a.force, threads=a.threads,
+            board=a.board,
         )
         return 0
 

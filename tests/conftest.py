@@ -65,6 +65,17 @@ def quick_capture_compact() -> Path:
     return render_cached(other, seed=0)
 
 
+CHESSBOARD = "chessboard:12x9:4"  # inner corners, square size (mm): about the paper's grid's extent
+
+
+@pytest.fixture(scope="session")
+def quick_capture_chessboard() -> Path:
+    """A `--quick` capture of the paper's rig with a chessboard, calibration and 3 plate frames."""
+    from crossline.board import Board
+
+    return render_cached("paper", seed=0, board=Board.parse(CHESSBOARD), scans=["plate"], frames=3)
+
+
 @pytest.fixture
 def capture_copy(quick_capture: Path, tmp_path: Path) -> Path:
     """A private copy of the quick capture that a test may break."""

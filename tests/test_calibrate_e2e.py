@@ -102,6 +102,40 @@ def test_handeye_against_truth(calibrated: dict[str, Path], quick_capture: Path)
     assert he.extra["methods"]["refined"]["board_consistency_mm"] < 0.05
 
 
+def test_chessboard_rig_calibrates_end_to_end(quick_capture_chessboard: Path, tmp_path: Path) -> None:
+    """A rig with a chessboard (real users own all three boards): all three stages, against truth.
+
+    The camera is within three times the error the stage predicts from its own fit (the quick
+    capture's 8 camera views allow ~0.08 px with chessboard corners; benchmarks/bench_corners.py
+    has the corner accuracy), the planes and X as for the circle grid.
+    """
+    cap = quick_capture_chessboard
+    cam_j, las_j, he_j = tmp_path / "camera.json", tmp_path / "lasers.json", tmp_path / "handeye.json"
+    assert main(["calibrate-camera", str(cap), "--out", str(cam_j), "--threads", "2"]) == 0
+    assert main(["calibrate-lasers", str(cap), "--camera", str(cam_j), "--out", str(las_j),
+                 "--threads", "2"]) == 0
+    assert main(["calibrate-handeye", str(cap), "--camera", str(cam_j), "--out", str(he_j),
+                 "--threads", "2"]) == 0
+    truth = _truth(cap)
+    est, true = Camera.load(cam_j), _true_camera(truth)
+    Q = _volume(true)
+    proj = float(np.sqrt(np.mean(np.sum((est.project(Q) - true.project(Q)) ** 2, 1))))
+    x = est.extra
+    assert x["board"]["pattern"] == "chessboard" and not x["bias_correction"]["enabled"]
+    assert x["n_views_used"] >= 20 and x["rms_px"] < 0.02
+    assert proj < 3 * x["uncertainty"]["projection_rms_px"]["sensor"] and proj < 0.2
+    planes = LaserPlanes.load(las_j)
+    for laser in ("A", "B"):
+        n_t, d_t = np.array(truth["lasers"][laser]["normal"]), truth["lasers"][laser]["d"]
+        p = planes[laser]
+        n, d = (p.normal, p.d) if p.normal @ n_t > 0 else (-p.normal, -p.d)
+        assert np.degrees(angle_between(n, n_t)) < 0.01 and abs(d - d_t) < 0.01
+    he = HandEye.load(he_j)
+    X_t = np.array(truth["T_tool_cam"])
+    err = np.sqrt(np.mean(np.sum((transform_points(he.T_tool_cam, Q) - transform_points(X_t, Q)) ** 2, 1)))
+    assert err < 0.03
+
+
 def _linked_copy(src: Path, dst: Path) -> Path:
     """A capture whose files are symbolic links to ``src``'s, so single files can be replaced."""
     for p in sorted(src.rglob("*")):

@@ -49,3 +49,30 @@ def test_checked_options_refuse_bad_values(capsys, argv, opt, value, expected):
     assert e.value.code == 2
     err = capsys.readouterr().err
     assert opt in err and expected in err
+
+
+def test_board_option_parses_every_pattern():
+    from crossline.board import Board
+
+    sim = ["simulate", "OUT"]
+    assert _parse(*sim).board is None
+    assert _parse(*sim, "--board", "chessboard:12x9:4").board == Board("chessboard", 12, 9, 4.0)
+    assert _parse(*sim, "--board", "asymmetric:7x13:2.5:1.5:light").board == Board(
+        "asymmetric", 7, 13, 2.5, 1.5, "light")
+    assert _parse(*sim, "--board", "symmetric:15X11:3.75:1.875").board.circles == "dark"
+
+
+@pytest.mark.parametrize("spec, expected", [
+    ("chessboard:12x9", "expected pattern:COLSxROWS:spacing"),
+    ("chessboard:12by9:4", "expected pattern:COLSxROWS:spacing"),
+    ("chessboard:12x9:4:2", "a chessboard has no circle diameter"),
+    ("symmetric:5x4:3", "a circle grid needs its circle diameter"),
+    ("hexagonal:5x4:3:1", "board pattern must be one of"),
+    ("symmetric:5x4:3:4", "circle diameter must be > 0 and smaller than the spacing"),
+    ("symmetric:5x4:3:1:grey", "board circles must be 'dark' or 'light'"),
+])
+def test_board_option_refuses_bad_specs(capsys, spec, expected):
+    with pytest.raises(SystemExit) as e:
+        _parse("simulate", "OUT", "--board", spec)
+    assert e.value.code == 2
+    assert expected in capsys.readouterr().err

@@ -217,6 +217,10 @@ def test_refuses_to_overwrite_and_leaves_nothing_half_written(tmp_path, monkeypa
     assert (out / "keep.txt").read_text() == "mine"
     with pytest.raises(CrosslineError, match="laser pattern"):
         simulate(tmp_path / "x", pattern=["A", "C"], progress=False)
+    with pytest.raises(CrosslineError, match=r"camera view 0: the 30x20 chessboard \(163 x 113 mm with its "
+                                             r"margin\) does not fit the camera's frame at 152 mm"):
+        simulate(tmp_path / "x", board=Board("chessboard", 30, 20, 5.0), quick=True, progress=False)
+    assert not (tmp_path / "x").exists() and not list(tmp_path.glob("x.partial-*"))
     # a render that fails half way leaves neither the capture nor its partial folder
     import crossline.sim.capture as capmod
 

@@ -40,6 +40,7 @@ same seed gives byte-identical files.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import shutil
 import sys
@@ -53,6 +54,7 @@ import numpy as np
 import yaml
 
 from crossline.atomic import atomic_path, write_json, write_parquet
+from crossline.board import Board
 from crossline.errors import CrosslineError
 from crossline.geometry import invert_transform, transform_to_pose
 from crossline.imageio import write_png
@@ -244,9 +246,16 @@ def simulate(
     force: bool = False,
     threads: int = 1,
     progress: bool = True,
+    board: Board | None = None,
 ) -> Path:
-    """Render a complete capture folder of a virtual rig at ``out``; return its path."""
+    """Render a complete capture folder of a virtual rig at ``out``; return its path.
+
+    ``board`` replaces the preset's calibration board (pattern, size, spacing), printed
+    in the preset's albedos on a plate of the preset's margin.
+    """
     rig = _resolve(preset)
+    if board is not None:
+        rig = dataclasses.replace(rig, board=dataclasses.replace(rig.board, board=board))
     out = Path(out)
     pattern = list(pattern) if pattern else list(rig.pattern)
     bad = [s for s in pattern if s not in LASER_STATES]

@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from crossline.camera import Camera
+from crossline.errors import CrosslineError
 from crossline.geometry import make_transform, rotvec_to_matrix
 from crossline.sim.arm import view_rotation
 from crossline.sim.presets import BoardSpec, CalibrationSpec, LaserSpec, RigPreset
@@ -51,6 +52,16 @@ def _visible(cam: Camera, T_cam_board: np.ndarray, pts: np.ndarray, margin: floa
     w, h = cam.image_size
     return bool(np.all((uv[:, 0] > margin) & (uv[:, 0] < w - 1 - margin)
                        & (uv[:, 1] > margin) & (uv[:, 1] < h - 1 - margin)))
+
+
+def _does_not_fit(what: str, spec: BoardSpec, depth: float) -> CrosslineError:
+    b = spec.board
+    x0, y0, x1, y1 = spec.plate_rect()
+    kind = "chessboard" if b.pattern == "chessboard" else f"{b.pattern} circle grid"
+    return CrosslineError(
+        f"{what}: the {b.cols}x{b.rows} {kind} ({x1 - x0:.0f} x {y1 - y0:.0f} mm with its "
+        f"margin) does not fit the camera's frame at {depth:.0f} mm; use a smaller board"
+    )
 
 
 def _tilt(axis_angle: float, tilt: float) -> np.ndarray:
@@ -98,8 +109,8 @@ def camera_views(cam: Camera, spec: BoardSpec, cal: CalibrationSpec, n: int) -> 
             depth = z0 + 0.25 * (z1 - z0)
         tx, ty = targets[i % len(targets)]
         T = _fit_camera_view(cam, R, bc, pts, depth, tx, ty, z1 + 40.0)
-        if T is None:  # pragma: no cover - every preset fits the board at its working distances
-            raise ValueError(f"camera view {i}: the board does not fit the frame")
+        if T is None:
+            raise _does_not_fit(f"camera view {i}", spec, depth)
         views.append(T)
     return views
 
@@ -134,8 +145,8 @@ def laser_views(cam: Camera, spec: BoardSpec, laser: LaserSpec, depths: tuple[fl
                     break
             if T is not None:
                 break
-        if T is None:  # pragma: no cover
-            raise ValueError(f"laser view {i}: the board does not fit the frame")
+        if T is None:
+            raise _does_not_fit(f"laser view {i}", spec, depth)
         views.append(T)
     return views
 
@@ -169,8 +180,8 @@ def handeye_views(cam: Camera, preset: RigPreset, n: int, distance: float) -> li
                 offset *= 0.7
             if found is not None:
                 break
-        if found is None:  # pragma: no cover
-            raise ValueError(f"hand-eye view {i}: the board does not fit the frame")
+        if found is None:
+            raise _does_not_fit(f"hand-eye view {i}", spec, distance)
         T_base_cam = found
         views.append(T_base_cam)
     return views
