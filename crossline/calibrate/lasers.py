@@ -6,7 +6,9 @@ For each pose of each laser:
 2. the stripe: laser-on minus lasers-off image (ambient light and the board's print cancel),
    grey-centre per column (:func:`crossline.stripes.grey_centre`; per row when the stripe is
    steeper than 45°, so that profiles cut the stripe at the smaller angle), with the
-   threshold as a fraction of the stripe's peak level;
+   threshold as a fraction of the stripe's peak level on the board's plate (its light area,
+   or its dark one for light circles; within the board's outline, ``margin_px`` clear of the
+   circles), whatever the stripe does on the table or on the circles;
 3. only centres whose whole window lies on the board, away from every albedo edge (circle
    rims, chessboard square edges) by ``margin_px``, are kept: at an albedo edge the stripe's
    profile is cut or weighted unevenly, which shifts its centre;
@@ -82,15 +84,14 @@ def edge_clearance(board: Board, xy: np.ndarray, board_margin: float | None = No
     x, y = xy[..., 0], xy[..., 1]
     s = board.spacing
     ex, ey = board.extent()
+    m = _margin(board) if board_margin is None else board_margin
     if board.pattern == "chessboard":
-        m = s if board_margin is None else board_margin
         kx = np.clip(np.round(x / s), -1, board.cols)
         ky = np.clip(np.round(y / s), -1, board.rows)
         dx = np.where((y > -s) & (y < board.rows * s), np.abs(x - kx * s), np.inf)
         dy = np.where((x > -s) & (x < board.cols * s), np.abs(y - ky * s), np.inf)
         clear = np.minimum(dx, dy)
     else:
-        m = board.diameter if board_margin is None else board_margin
         R = 0.5 * board.diameter
         clear = np.full(x.shape, np.inf)
         r0 = np.floor(y / s)
@@ -107,6 +108,26 @@ def edge_clearance(board: Board, xy: np.ndarray, board_margin: float | None = No
                 clear = np.minimum(clear, np.abs(np.hypot(x - cxx, y - r * s) - R))
     inside = np.minimum.reduce([x + m, y + m, ex + m - x, ey + m - y])
     return np.where(inside < 0, inside, np.minimum(clear, inside))
+
+
+def _margin(board: Board) -> float:
+    """How far the board's usable area reaches beyond the outer points (mm)."""
+    return board.spacing if board.pattern == "chessboard" else float(board.diameter)
+
+
+def _board_area(camera: Camera, T_cam_board: np.ndarray, board: Board, shape: tuple[int, int]) -> np.ndarray:
+    """The pixels (bool mask) that see the board's usable area (``edge_clearance`` >= 0)."""
+    ex, ey = board.extent()
+    m = _margin(board)
+    t = np.linspace(0.0, 1.0, 64, endpoint=False)
+    x0, x1, y0, y1 = -m, ex + m, -m, ey + m
+    xs = np.concatenate([x0 + (x1 - x0) * t, np.full_like(t, x1), x1 - (x1 - x0) * t, np.full_like(t, x0)])
+    ys = np.concatenate([np.full_like(t, y0), y0 + (y1 - y0) * t, np.full_like(t, y1), y1 - (y1 - y0) * t])
+    P = np.column_stack([xs, ys, np.zeros_like(xs)]) @ T_cam_board[:3, :3].T + T_cam_board[:3, 3]
+    uv = camera.project(P)  # the outline through the lens: 256 points, distortion included
+    mask = np.zeros(shape, np.uint8)
+    cv2.fillPoly(mask, [np.round(uv * 16).astype(np.int32)], 1, lineType=cv2.LINE_8, shift=4)
+    return mask.astype(bool)
 
 
 def _light_mask(board_image: np.ndarray) -> np.ndarray:
@@ -188,9 +209,16 @@ def stripe_points(
     # The stripe's level differs by the albedo ratio (~10x) between the board's light and
     # dark areas: a threshold set by the brightest part would lose the stripe on the plate
     # of a light-circles board. Centres are taken on the plate (the circles' interiors add
-    # little but noise on a dark-circles board), at the plate's own level.
+    # little but noise on a dark-circles board), at the plate's own level, and on the board
+    # only: the table around a dark board can be lit brighter than the board's plate.
+    # The plate's pixels within margin_px of a circle are dropped before anything is measured:
+    # the difference image rings there (an edge seen at two exposures), and on a board of light
+    # circles those rings outnumber the faint stripe; no centre near an edge is used anyway.
     light = _light_mask(board_image)
-    dm = np.where(~light if board.circles == "light" else light, diff, 0)
+    plate = (~light if board.circles == "light" else light).astype(np.uint8)
+    k = 2 * int(np.ceil(margin_px)) + 1
+    plate = cv2.erode(plate, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))).astype(bool)
+    dm = np.where(plate & _board_area(camera, T, board, diff.shape), diff, 0)
     peak = _peak(dm)
     if peak <= floor and (anywhere := _peak(diff)) > floor:
         raise CalibrationError(
