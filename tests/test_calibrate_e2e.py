@@ -39,17 +39,21 @@ def _volume(cam: Camera, z0: float = 115.0, z1: float = 185.0, n: int = 11) -> n
     return np.concatenate([np.column_stack([xy * z, np.full(len(xy), z)]) for z in np.linspace(z0, z1, 5)])
 
 
-@pytest.fixture(scope="module")
-def calibrated(quick_capture: Path, tmp_path_factory) -> dict[str, Path]:
-    """camera.json, lasers.json and handeye.json of the quick capture, made by the CLI."""
-    out = tmp_path_factory.mktemp("calibration")
+def _calibrate(capture: Path, out: Path) -> dict[str, Path]:
+    """camera.json, lasers.json and handeye.json of a capture, made by the CLI in ``out``."""
     cam, las, he = out / "camera.json", out / "lasers.json", out / "handeye.json"
-    assert main(["calibrate-camera", str(quick_capture), "--out", str(cam), "--threads", "2"]) == 0
-    assert main(["calibrate-lasers", str(quick_capture), "--camera", str(cam), "--out", str(las),
+    assert main(["calibrate-camera", str(capture), "--out", str(cam), "--threads", "2"]) == 0
+    assert main(["calibrate-lasers", str(capture), "--camera", str(cam), "--out", str(las),
                  "--threads", "2"]) == 0
-    assert main(["calibrate-handeye", str(quick_capture), "--camera", str(cam), "--out", str(he),
+    assert main(["calibrate-handeye", str(capture), "--camera", str(cam), "--out", str(he),
                  "--threads", "2"]) == 0
     return {"camera": cam, "lasers": las, "handeye": he}
+
+
+@pytest.fixture(scope="module")
+def calibrated(quick_capture: Path, tmp_path_factory) -> dict[str, Path]:
+    """The three calibrations of the quick capture."""
+    return _calibrate(quick_capture, tmp_path_factory.mktemp("calibration"))
 
 
 def test_camera_against_truth(calibrated: dict[str, Path], quick_capture: Path) -> None:
@@ -110,12 +114,8 @@ def test_chessboard_rig_calibrates_end_to_end(quick_capture_chessboard: Path, tm
     has the corner accuracy), the planes and X as for the circle grid.
     """
     cap = quick_capture_chessboard
-    cam_j, las_j, he_j = tmp_path / "camera.json", tmp_path / "lasers.json", tmp_path / "handeye.json"
-    assert main(["calibrate-camera", str(cap), "--out", str(cam_j), "--threads", "2"]) == 0
-    assert main(["calibrate-lasers", str(cap), "--camera", str(cam_j), "--out", str(las_j),
-                 "--threads", "2"]) == 0
-    assert main(["calibrate-handeye", str(cap), "--camera", str(cam_j), "--out", str(he_j),
-                 "--threads", "2"]) == 0
+    made = _calibrate(cap, tmp_path)
+    cam_j, las_j, he_j = made["camera"], made["lasers"], made["handeye"]
     truth = _truth(cap)
     est, true = Camera.load(cam_j), _true_camera(truth)
     Q = _volume(true)
