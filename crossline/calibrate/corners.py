@@ -184,8 +184,9 @@ def refine_chessboard_corners(
     c0 = np.sum(w * (val - m0[:, None]) * np.sign(d1) * np.sign(d2), axis=1) / sw
     zeros = np.zeros(len(p0))
     q = np.column_stack([p0, a1, a2, zeros, m0, zeros, zeros, c0, zeros, zeros])
-    for _ in range(passes):  # re-centre the window on the estimate, then fit again
-        x, y, val, w = _window(img, q[:, :2], e1, e2, h)
+    for k in range(passes):  # fit, then re-centre the window on the estimate and fit again
+        if k:
+            x, y, val, w = _window(img, q[:, :2], e1, e2, h)
         q, cost = _fit(q, x, y, val, w, L)
     sigma = np.exp(q[:, 4])
     resid = np.sqrt(cost / np.maximum(w.sum(axis=1), 1e-12))
