@@ -644,6 +644,8 @@ def _calibration(inputs: dict[str, dict | None]) -> dict[str, Any]:
                 c[k] = cam[k]
             elif isinstance(cam.get(k), dict):  # keep its figures, not its history
                 c[k] = {kk: v for kk, v in cam[k].items() if isinstance(v, bool | int | float | str)}
+        if isinstance(cam.get("board"), dict):
+            c["board"] = dict(cam["board"])
         unc = cam.get("uncertainty")
         if isinstance(unc, dict):  # its figures, not the covariance matrix
             c["uncertainty"] = {k: unc[k] for k in ("sigma_px", "std", "projection_rms_px") if k in unc}

@@ -447,7 +447,9 @@ def page_camera(m: dict[str, Any], plots: dict[str, Any]) -> Figure:
                "More views, or steeper tilts, lower it.", size=8.2)
     size = c.get("image_size")
     bc = c.get("bias_correction")
-    if isinstance(bc, dict):
+    if (c.get("board") or {}).get("pattern") == "chessboard":
+        bias = "; chessboard corners fitted as X-junctions (no perspective bias to correct)"
+    elif isinstance(bc, dict):
         on = bc.get("enabled")
         bias = "; circle-centre bias correction " + ("on" if on else "off" if on is not None else "–")
         if on and "mean_shift_px" in bc:

@@ -185,6 +185,21 @@ def test_pages_show_the_numbers_of_metrics(report_data):
     assert f"page {len(figs)} of {len(figs)}" in texts[-1]
 
 
+def test_camera_page_names_the_board_s_corner_method(report_data):
+    """Circle grids: the bias correction's state; chessboards: the X-junction fit (no bias)."""
+    import copy
+
+    def camera_page(m):
+        return next(" ".join(page_texts(f)) for f in build_pages(m, report_data.plots)
+                    if "Calibration: camera" in " ".join(page_texts(f)))
+
+    m = copy.deepcopy(report_data.metrics)
+    assert "circle-centre bias correction" in camera_page(m)
+    m["calibration"]["camera"]["board"] = {"pattern": "chessboard", "cols": 12, "rows": 9, "spacing": 4.0}
+    page = camera_page(m)
+    assert "chessboard corners fitted as X-junctions" in page and "circle-centre" not in page
+
+
 @pytest.mark.slow
 def test_run_twice_same_bytes_and_inputs_hashed(synthetic, tmp_path):
     raw, interim, processed = synthetic
