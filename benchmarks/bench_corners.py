@@ -39,16 +39,23 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from bench_calibration import DEPTHS, volume_points  # noqa: E402
+
 from crossline.atomic import write_json  # noqa: E402
 from crossline.board import Board  # noqa: E402
 from crossline.calibrate.camera import solve_views, uncertainty_summary  # noqa: E402
-from crossline.calibrate.detect import Detection, board_symmetries, detect_board  # noqa: E402
+from crossline.calibrate.detect import (  # noqa: E402
+    Detection,
+    board_symmetries,
+    detect_board,
+    subpix_corners,
+    to_uint8,
+)
 from crossline.camera import Camera  # noqa: E402
 from crossline.imageio import read_image  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 BOARDS = {"paper": "chessboard:12x9:4", "compact": "chessboard:11x10:2.5"}
-DEPTHS = {"paper": (115.0, 185.0), "compact": (80.0, 125.0)}
 ALIGNED = {"calibration/camera/view_00.png", "calibration/camera/view_01.png"}
 METHODS = ("opencv_sb", "opencv_subpix", "xfit")
 
@@ -68,16 +75,6 @@ def _views(truth: dict) -> list[tuple[str, np.ndarray]]:
     return out
 
 
-def _subpix(img8: np.ndarray, pts: np.ndarray, board: Board) -> np.ndarray:
-    """The refinement crossline used before the X-junction fit (detect.py at commit b3d50e1)."""
-    grid = pts.reshape(board.rows, board.cols, 2)
-    spacing = np.median(np.linalg.norm(np.diff(grid, axis=1), axis=-1))
-    win = int(np.clip(0.4 * spacing, 3, 25))
-    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
-    q = cv2.cornerSubPix(img8, pts.astype(np.float32).reshape(-1, 1, 2), (win, win), (-1, -1), crit)
-    return q.reshape(-1, 2).astype(np.float64)
-
-
 def _stats(e: np.ndarray) -> dict:
     n = np.linalg.norm(e, axis=1)
     return {"n": len(e), "rms_px": float(np.sqrt(np.mean(n**2))), "mean_px": e.mean(0).tolist(),
@@ -86,8 +83,6 @@ def _stats(e: np.ndarray) -> dict:
 
 def evaluate(capture: Path, preset: str) -> dict:
     """Corner errors of the three refiners on every view, and the cameras they calibrate."""
-    from crossline.calibrate.detect import to_uint8
-
     truth = json.loads((capture / "truth.json").read_text())
     c = truth["camera"]
     true_cam = Camera(np.array(c["K"]), np.array(c["dist"]), tuple(c["image_size"]))
@@ -105,7 +100,7 @@ def evaluate(capture: Path, preset: str) -> dict:
                                              flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
         t1 = time.perf_counter()
         crude = detect_board(img, board, refine=False)
-        sub = _subpix(img8, crude.points, board)
+        sub = subpix_corners(img8, crude.points, board)  # what crossline did before the fit
         t3 = time.perf_counter()
         ours = detect_board(img, board)
         t4 = time.perf_counter()
@@ -129,10 +124,7 @@ def evaluate(capture: Path, preset: str) -> dict:
         result["time_per_view_s"][m] = float(np.median(times[m]))
     # the camera from each set of corners: the stage's solver, every view, no bias correction
     w, h = true_cam.image_size
-    z0, z1 = DEPTHS[preset]
-    u, v = np.meshgrid(np.linspace(0, w - 1, 21), np.linspace(0, h - 1, 21))
-    xy = true_cam.undistort(np.column_stack([u.ravel(), v.ravel()]))
-    Q = np.concatenate([np.column_stack([xy * z, np.full(len(xy), z)]) for z in np.linspace(z0, z1, 8)])
+    Q = volume_points(true_cam, DEPTHS[preset])
     for m in METHODS:
         fit, used, _ = solve_views(names, dets[m], board, (w, h))
         d = fit.camera.project(Q) - true_cam.project(Q)

@@ -42,6 +42,7 @@ __all__ = [
     "canonical_labelling",
     "detect_board",
     "refine_circle_centres",
+    "subpix_corners",
     "to_uint8",
 ]
 
@@ -217,6 +218,17 @@ def _find_chessboard(img8: np.ndarray, board: Board) -> np.ndarray | None:
     return corners.reshape(-1, 2).astype(np.float64)
 
 
+def subpix_corners(img8: np.ndarray, points: np.ndarray, board: Board) -> np.ndarray:
+    """Chessboard corners (N, 2) refined by ``cv2.cornerSubPix`` in a window of 0.4 spacings."""
+    grid = points.reshape(board.rows, board.cols, 2)
+    spacing = np.median(np.linalg.norm(np.diff(grid, axis=1), axis=-1))
+    win = int(np.clip(0.4 * spacing, 3, 25))
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
+    # (N, 1, 2) by reshape, not [:, None]: a new axis has stride 0, which cv2 rejects
+    q = cv2.cornerSubPix(img8, points.astype(np.float32).reshape(-1, 1, 2), (win, win), (-1, -1), crit)
+    return q.reshape(-1, 2).astype(np.float64)
+
+
 def detect_board(image: np.ndarray, board: Board, *, refine: bool = True) -> Detection:
     """Find ``board`` in a grey image; return refined points in board order or the reason why not."""
     img = np.asarray(image)
@@ -248,13 +260,7 @@ def detect_board(image: np.ndarray, board: Board, *, refine: bool = True) -> Det
         if not refine:
             return Detection(pts)
         if f > 1:  # corners found on the reduced image: OpenCV's refinement first, at full size
-            crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
-            grid = pts.reshape(board.rows, board.cols, 2)
-            spacing = np.median(np.linalg.norm(np.diff(grid, axis=1), axis=-1))
-            win = int(np.clip(0.4 * spacing, 3, 25))
-            # (N, 1, 2) by reshape, not [:, None]: a new axis has stride 0, which cv2 rejects
-            pts = cv2.cornerSubPix(img8, pts.astype(np.float32).reshape(-1, 1, 2), (win, win), (-1, -1), crit)
-            pts = pts.reshape(-1, 2).astype(np.float64)
+            pts = subpix_corners(img8, pts, board)
         pts, ok = refine_chessboard_corners(img, board, pts)
         if not ok.all():
             bad = np.flatnonzero(~ok)
