@@ -51,7 +51,7 @@ CACHE = REPO / "benchmarks" / ".cache"
 RESULTS = REPO / "benchmarks" / "results"
 CROSSING_PX = 15.0
 SCAN = "plate"
-SMOOTH_WINDOWS = (5, 9)
+SMOOTH_WINDOWS = (5, 7, 9)
 BUDGET_FRAMES = 6  # per laser, for the error budget
 PATTERNS = (("A", "B", "AB"), ("A", "B", "AB", "AB"), ("A", "B", "AB", "AB", "AB", "AB"))
 
@@ -151,6 +151,13 @@ def true_calibration(capture: Path, dest: Path) -> tuple[Path, Path, Path]:
 
 
 # ----------------------------------------------------------------------------- accuracy
+
+
+def workflow_smoothing() -> int:
+    """The workflow's default smoothing window along the stripe (config.yaml points.smooth_px)."""
+    import yaml
+
+    return int(yaml.safe_load((REPO / "config.yaml").read_text())["points"]["smooth_px"])
 
 
 def truth_table(capture: Path) -> tuple[dict, pd.DataFrame]:
@@ -419,7 +426,8 @@ def speeds(capture: Path, cal: tuple[Path, Path, Path], repeat: int, work: Path)
     res["naive_over_numpy"] = res["naive_python_ms"] / res["grey_centre_numpy_ms"]
     for k in ("grey_centre_numba", "grey_centre_numpy", "gaussian", "steger"):
         res[k + "_fps_per_core"] = 1e3 / res[k + "_ms"]
-    # end to end with 2 threads: extraction (streamed, 2 threads) then triangulation
+    # end to end with 2 threads: extraction (streamed, 2 threads) then triangulation with the
+    # workflow's smoothing along the stripe
     nfr = len(sc.frames)
     for ex in EXTRACTORS:
         ext, tri = [], []
@@ -428,7 +436,7 @@ def speeds(capture: Path, cal: tuple[Path, Path, Path], repeat: int, work: Path)
             t0 = time.perf_counter()
             run_extract_stripes(capture, SCAN, st, extractor=ex, threads=2)
             t1 = time.perf_counter()
-            run_triangulate(capture, SCAN, st, *cal, pt)
+            run_triangulate(capture, SCAN, st, *cal, pt, smooth_px=workflow_smoothing())
             t2 = time.perf_counter()
             ext.append(t1 - t0)
             tri.append(t2 - t1)
@@ -494,7 +502,7 @@ run_extract_stripes({str(capture)!r}, {SCAN!r}, {str(work / 'm.parquet')!r}, thr
         "triangulate": f"""
 from crossline.triangulate import run_triangulate
 run_triangulate({str(capture)!r}, {SCAN!r}, {str(work / 'm.parquet')!r}, {str(cal[0])!r}, {str(cal[1])!r},
-                {str(cal[2])!r}, {str(work / 'mp.parquet')!r}, smooth_px=5)
+                {str(cal[2])!r}, {str(work / 'mp.parquet')!r}, smooth_px={workflow_smoothing()})
 """,
     }
     res = {}
@@ -578,8 +586,10 @@ def main(argv=None) -> int:
                 say(f"  {'':12s} noise found in the frames (median): background "
                     f"{r['noise_found']['background_noise_dn']:.2f} DN, relative (speckle) "
                     f"{r['noise_found']['relative_noise']:.3f}")
+            default = workflow_smoothing()
             tags = [("centres_used", "after end trimming", "surface")] + [
-                (f"centres_smooth{w}", f"trimmed + smoothed over {w} columns", f"surface_smooth{w}")
+                (f"centres_smooth{w}", f"trimmed + smoothed over {w} columns"
+                 + (" (workflow default)" if w == default else ""), f"surface_smooth{w}")
                 for w in SMOOTH_WINDOWS]
             for tag, what, stag in tags:
                 c = r[stag.replace("surface", "centres")] if stag != "surface" else r[tag]
