@@ -579,7 +579,8 @@ def main(argv=None) -> int:
             c, lb, sf = r["centres"], r["labels"], r["surface"]
             say(f"  {ex:12s} centre error away (row at the column / normal to the line): RMS "
                 f"{c['away']['rms_px']:.4f} / {c['away']['normal_rms_px']:.4f} px, p99 "
-                f"{c['away']['p99_px']:.4f} px (n={c['away']['n']}); crossing band: RMS "
+                f"{c['away']['p99_px']:.4f} / {c['away']['normal_p99_px']:.4f} px (n={c['away']['n']}); "
+                f"crossing band: RMS "
                 f"{c['crossing']['rms_px'] or float('nan'):.4f} px, p99 "
                 f"{c['crossing']['p99_px'] or float('nan'):.4f} px (n={c['crossing']['n']})")
             if "noise_found" in r:
@@ -595,8 +596,9 @@ def main(argv=None) -> int:
                 c = r[stag.replace("surface", "centres")] if stag != "surface" else r[tag]
                 ssf = r[stag]
                 say(f"  {'':12s} {what}: away RMS {c['away']['rms_px']:.4f} / "
-                    f"{c['away']['normal_rms_px']:.4f} px, p99 {c['away']['p99_px']:.4f} px "
-                    f"(n={c['away']['n']}); plate RMS (TRUE calibration and poses) "
+                    f"{c['away']['normal_rms_px']:.4f} px, p99 {c['away']['p99_px']:.4f} / "
+                    f"{c['away']['normal_p99_px']:.4f} px (n={c['away']['n']}); plate RMS (TRUE "
+                    f"calibration and poses) "
                     f"{ssf.get('true_poses', ssf['reported_poses'])['rms_mm']:.4f} mm")
             for tag, L in (("ours", lb), ("paper rule", r["labels_paper_rule"])):
                 say(f"  {'':12s} labels ({tag}): wrong {L['wrong_labels']} of {L['ab_points_known']} "
