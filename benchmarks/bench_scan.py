@@ -135,19 +135,12 @@ def synthetic_capture(frames: int, seed: int = 0) -> Path:
 
 def true_calibration(capture: Path, dest: Path) -> tuple[Path, Path, Path]:
     """camera.json, lasers.json, handeye.json written from truth.json (benchmarks only)."""
-    from crossline.atomic import write_json
-
     if (capture / "cal" / "camera.json").is_file():  # synthetic stand-in
         c = capture / "cal"
         return c / "camera.json", c / "lasers.json", c / "handeye.json"
-    truth = json.loads((capture / "truth.json").read_text())
-    rig = open_capture(capture).rig
-    dest.mkdir(parents=True, exist_ok=True)
-    Camera(np.array(truth["camera"]["K"]), np.array(truth["camera"]["dist"]),
-           (rig.sensor.width, rig.sensor.height)).save(dest / "camera.json")
-    LaserPlanes.from_dict(truth["lasers"]).save(dest / "lasers.json")
-    write_json(dest / "handeye.json", {"T_tool_cam": truth["T_tool_cam"], "method": "truth"})
-    return dest / "camera.json", dest / "lasers.json", dest / "handeye.json"
+    from crossline.sim import write_true_calibration
+
+    return write_true_calibration(capture, dest)
 
 
 # ----------------------------------------------------------------------------- accuracy

@@ -290,25 +290,17 @@ def test_rendered_stripes_recover_injected_pose_errors(quick_capture: Path, tmp_
     3x the arm's sigma are put in; a prior of the same (white) model must find their
     observable part through the extraction noise of real images.
     """
-    from crossline.atomic import write_json
-    from crossline.camera import Camera
-    from crossline.capture import open_capture
     from crossline.geometry import transform_from_pose
-    from crossline.laser import LaserPlanes
+    from crossline.sim import write_true_calibration
     from crossline.stripes import run_extract_stripes
     from crossline.triangulate import run_triangulate
 
     cap = tmp_path / "cap"
     shutil.copytree(quick_capture, cap)
     truth = json.loads((cap / "truth.json").read_text())
-    rig = open_capture(cap).rig
-    Camera(np.array(truth["camera"]["K"]), np.array(truth["camera"]["dist"]),
-           (rig.sensor.width, rig.sensor.height)).save(tmp_path / "camera.json")
-    LaserPlanes.from_dict(truth["lasers"]).save(tmp_path / "lasers.json")
-    write_json(tmp_path / "handeye.json", {"T_tool_cam": truth["T_tool_cam"]})
+    cal = write_true_calibration(cap, tmp_path)
     run_extract_stripes(cap, "plate", tmp_path / "stripes.parquet", extractor="gaussian", threads=2)
-    run_triangulate(cap, "plate", tmp_path / "stripes.parquet", tmp_path / "camera.json",
-                    tmp_path / "lasers.json", tmp_path / "handeye.json", tmp_path / "points.parquet",
+    run_triangulate(cap, "plate", tmp_path / "stripes.parquet", *cal, tmp_path / "points.parquet",
                     smooth_px=5)
     df = pd.read_parquet(tmp_path / "points.parquet")
     tp = pd.read_parquet(cap / truth["scans"]["plate"]["poses"]).sort_values("frame")

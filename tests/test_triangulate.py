@@ -14,6 +14,7 @@ from crossline.camera import Camera
 from crossline.errors import StageError
 from crossline.geometry import transform_from_pose
 from crossline.laser import LaserPlane, LaserPlanes
+from crossline.sim import write_true_calibration
 from crossline.stripes import gather_stripes, read_stripes_meta, run_extract_stripes
 from crossline.triangulate import read_points_meta, run_triangulate, to_base, triangulate
 from tests import scan_synth as S
@@ -212,21 +213,12 @@ def _sim_available() -> bool:
 @pytest.mark.skipif(not _sim_available(), reason="crossline.sim.simulate not available yet")
 def test_quick_capture_end_to_end(quick_capture, tmp_path):
     """Stripes -> points on a rendered capture, scored with the TRUE calibration."""
-    from crossline.capture import open_capture
-
-    cap = open_capture(quick_capture)
     truth = json.loads((quick_capture / "truth.json").read_text())
-    cal = tmp_path / "cal"
-    cal.mkdir()
-    Camera(np.array(truth["camera"]["K"]), np.array(truth["camera"]["dist"]),
-           (cap.rig.sensor.width, cap.rig.sensor.height)).save(cal / "camera.json")
-    LaserPlanes.from_dict(truth["lasers"]).save(cal / "lasers.json")
-    (cal / "handeye.json").write_text(json.dumps({"T_tool_cam": truth["T_tool_cam"]}))
+    cal = write_true_calibration(quick_capture, tmp_path / "cal")
     scan = "plate" if "plate" in truth["scans"] else next(iter(truth["scans"]))
     st, pts = tmp_path / "s.parquet", tmp_path / "p.parquet"
     run_extract_stripes(quick_capture, scan, st, threads=2)
-    run_triangulate(quick_capture, scan, st, cal / "camera.json", cal / "lasers.json",
-                    cal / "handeye.json", pts)
+    run_triangulate(quick_capture, scan, st, *cal, pts)
     p = pd.read_parquet(pts)
     t = pd.read_parquet(quick_capture / truth["scans"][scan]["centrelines"])
     t = t[t["visible"]]
@@ -249,20 +241,6 @@ def test_quick_capture_end_to_end(quick_capture, tmp_path):
     pb = to_base(p[["x_cam", "y_cam", "z_cam"]].to_numpy(), T, np.array(truth["T_tool_cam"]))
     d = pb @ plane[:3] + plane[3]
     assert np.sqrt(np.mean(d**2)) <= 0.01
-
-
-def _true_calibration(capture: Path, dest: Path) -> tuple[Path, Path, Path]:
-    """The simulator's true camera, planes and hand-eye written as the stages' artefacts."""
-    from crossline.capture import open_capture
-
-    cap = open_capture(capture)
-    truth = json.loads((capture / "truth.json").read_text())
-    dest.mkdir(parents=True, exist_ok=True)
-    Camera(np.array(truth["camera"]["K"]), np.array(truth["camera"]["dist"]),
-           (cap.rig.sensor.width, cap.rig.sensor.height)).save(dest / "camera.json")
-    LaserPlanes.from_dict(truth["lasers"]).save(dest / "lasers.json")
-    (dest / "handeye.json").write_text(json.dumps({"T_tool_cam": truth["T_tool_cam"]}))
-    return dest / "camera.json", dest / "lasers.json", dest / "handeye.json"
 
 
 def _normal_errors(points: pd.DataFrame, centrelines: pd.DataFrame) -> np.ndarray:
@@ -293,7 +271,7 @@ def test_workflow_centre_lines_meet_the_centre_target(rig, request, tmp_path):
     capture = request.getfixturevalue(rig)
     cfg = yaml.safe_load((Path(__file__).resolve().parents[1] / "config.yaml").read_text())
     truth = json.loads((capture / "truth.json").read_text())
-    cal = _true_calibration(capture, tmp_path / "cal")
+    cal = write_true_calibration(capture, tmp_path / "cal")
     st = tmp_path / "s.parquet"
     run_extract_stripes(capture, "plate", st, extractor=cfg["stripes"]["extractor"], threads=2)
     tl = pd.read_parquet(capture / truth["scans"]["plate"]["centrelines"])

@@ -9,11 +9,13 @@ Module map: ``presets`` (the rigs and every number), ``optics`` (rays through th
 sensor chain, speckle), ``scene`` (analytic primitives), ``scenes`` (artefacts and board),
 ``texture`` (board patterns), ``sheet`` (laser irradiance), ``render`` (images and the true
 stripe), ``arm`` (trajectories and pose noise), ``views`` (calibration poses), ``part`` (the
-freeform's truth mesh), ``capture`` (this package's writer, in ``simulate``).
+freeform's truth mesh), ``capture`` (this package's writer, in ``simulate``), ``truth`` (the true
+calibration written as the stages' artefacts, to score later stages alone).
 """
 
 from __future__ import annotations
 
 from crossline.sim.capture import simulate
+from crossline.sim.truth import write_true_calibration
 
-__all__ = ["simulate"]
+__all__ = ["simulate", "write_true_calibration"]
