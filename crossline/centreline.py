@@ -17,7 +17,7 @@ import numpy as np
 
 from crossline.jit import jit
 
-__all__ = ["blocked_ends", "link_traces", "smooth_along", "trace_position"]
+__all__ = ["blocked_ends", "half_amplitude_columns", "link_traces", "smooth_along", "trace_position"]
 
 
 def _keys(frame: np.ndarray, laser: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -310,3 +310,28 @@ def smooth_along(
     ok = np.zeros(len(v), dtype=bool)
     _local_quadratic(key[order], order, v, h, out, ok)
     return out, ok
+
+
+def half_amplitude_columns(window: int) -> float:
+    """Period, in columns, of the ripple that :func:`smooth_along` passes at half its amplitude.
+
+    The lateral resolution the smoothing leaves along the stripe: the frequency response of
+    the local quadratic over ``window`` columns (Savitzky–Golay, centred) falls to 0.5 at
+    this period (5.2 columns for 7; inf for 1 = off).
+    """
+    if window <= 1:
+        return float("inf")
+    h = window // 2
+    k = np.arange(-h, h + 1, dtype=np.float64)
+    # the centre weights of the least-squares quadratic: row 0 of (X^T X)^-1 X^T
+    X = np.vander(k, 3, increasing=True)
+    c = np.linalg.pinv(X)[0]
+    f = np.linspace(0.0, 0.5, 50001)
+    H = np.cos(2.0 * np.pi * np.outer(f, k)) @ c
+    below = np.flatnonzero(H < 0.5)
+    if below.size == 0:
+        return float("inf")
+    i = below[0]
+    # linear interpolation between the last sample above and the first below 0.5
+    fc = f[i - 1] + (H[i - 1] - 0.5) / (H[i - 1] - H[i]) * (f[i] - f[i - 1])
+    return float(1.0 / fc)

@@ -373,9 +373,9 @@ def _triangulate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--track-references", type=_bool, default=True,
                    help="an AB frame's labelled stripes are the references of the next AB frame "
                         "(default true; false = the paper: references from A and B frames only)")
-    p.add_argument("--smooth-px", type=int, default=5,
+    p.add_argument("--smooth-px", type=int, default=7,
                    help="smooth each centre line along the stripe over this many columns "
-                        "(odd; local quadratic; default 5; 1 = off)")
+                        "(odd; local quadratic; default 7, as config.yaml; 1 = off)")
     p.add_argument("--stats", type=Path,
                    help="JSON of the labelling counts (default: --out with suffix .json)")
 

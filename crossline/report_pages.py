@@ -25,6 +25,8 @@ import numpy as np
 from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure
 
+from crossline.centreline import half_amplitude_columns
+
 __all__ = ["A4", "build_pages", "fmt", "fmt_row_value", "fmt_tolerance", "render_pdf"]
 
 A4 = (8.27, 11.69)  # inches, portrait
@@ -785,6 +787,13 @@ def page_scan(m: dict[str, Any], name: str, plots: dict[str, Any]) -> Figure:
         lines.append(f"points {fmt(c['points'])} (A {fmt(by.get('A', 0))}, B {fmt(by.get('B', 0))})")
     if "frames" in c:
         lines.append(f"frames {fmt(c['frames'])}")
+    tri = c.get("triangulation") or {}
+    win = (tri.get("params") or {}).get("smooth_px")
+    if win is not None:
+        what = (f"smoothed along the stripe over {win} columns (half amplitude at a "
+                f"{half_amplitude_columns(int(win)):.1f}-column ripple)" if win > 1
+                else "each column on its own (no smoothing)")
+        lines.append(f"centres: {tri.get('extractor', '?').replace('_', ' ')}, {what}")
     if c.get("points_per_frame") is not None:
         lines.append(f"points per frame {fmt(c['points_per_frame'], '', 1)}")
     if c.get("points_per_single_laser_frame") is not None:

@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from crossline.centreline import blocked_ends, link_traces, smooth_along, trace_position
+from crossline.centreline import (
+    blocked_ends,
+    half_amplitude_columns,
+    link_traces,
+    smooth_along,
+    trace_position,
+)
 
 
 def _stripe(frame, laser, u0, u1, v_of_u):
@@ -112,3 +118,24 @@ def test_a_trace_does_not_fork_where_two_stripes_meet() -> None:
     v = np.array([100.0, 100.5, 104.0, 101.0, 108.0])
     prev = link_traces(np.zeros(5, int), np.full(5, "A"), u, v)
     assert prev.tolist() == [-1, 0, -1, 1, 2]
+
+
+@pytest.mark.parametrize("window", [5, 7, 9, 15])
+def test_half_amplitude_period_is_what_the_smoothing_passes_at_half(window) -> None:
+    """A ripple of the stated period comes out of smooth_along at half its amplitude."""
+    period = half_amplitude_columns(window)
+    u = np.arange(4000, dtype=np.float64)
+    v = 100.0 + np.sin(2 * np.pi * u / period)
+    vs, _ = smooth_along(np.zeros(u.size, np.int64), u, v, window)
+    mid = slice(window, -window)  # away from the trace's ends
+    gain = np.sqrt(2 * np.mean((vs[mid] - 100.0) ** 2))
+    assert gain == pytest.approx(0.5, abs=2e-3)
+    # and scipy's Savitzky-Golay filter (same local quadratic) agrees
+    from scipy.signal import savgol_filter
+
+    ref = savgol_filter(v, window, 2)
+    np.testing.assert_allclose(vs[mid], ref[mid], atol=1e-9)
+
+
+def test_half_amplitude_period_without_smoothing_is_infinite() -> None:
+    assert half_amplitude_columns(1) == np.inf and half_amplitude_columns(3) == np.inf

@@ -7,6 +7,7 @@ import json
 
 import pytest
 
+from crossline.centreline import half_amplitude_columns
 from crossline.cli import main
 from crossline.report import build_report
 from crossline.report_pages import build_pages, fmt, fmt_row_value, page_texts
@@ -90,6 +91,13 @@ def test_quick_report_pages_show_metrics(quick_pipeline):
         assert pr["crossings"] > 0 and pr["gap_rms_after_mm"] < pr["gap_rms_before_mm"]
         assert (f"arm poses refined: {fmt(pr['used'])} A-B crossings, "
                 f"{fmt(pr['frames_with_crossings'])} of {fmt(pr['frames'])} frames") in page
+        # how the centres were made, and the lateral resolution the smoothing leaves
+        tri = s["counts"]["triangulation"]
+        win = tri["params"]["smooth_px"]
+        assert (f"centres: {tri['extractor'].replace('_', ' ')}, " + (
+            f"smoothed along the stripe over {win} columns (half amplitude at a "
+            f"{half_amplitude_columns(win):.1f}-column ripple)" if win > 1
+            else "each column on its own")) in page
         meas = s.get("measurement") or {}
         shown = {"gauge_block": [("mean_mm", "mm"), ("std_mm", "mm")],
                  "plane": [("share_within_band", "%"), ("rms_mm", "mm")],
