@@ -790,10 +790,13 @@ def page_scan(m: dict[str, Any], name: str, plots: dict[str, Any]) -> Figure:
     tri = c.get("triangulation") or {}
     win = (tri.get("params") or {}).get("smooth_px")
     if win is not None:
-        what = (f"smoothed along the stripe over {win} columns (half amplitude at a "
-                f"{half_amplitude_columns(int(win)):.1f}-column ripple)" if win > 1
-                else "each column on its own (no smoothing)")
-        lines.append(f"centres: {tri.get('extractor', '?').replace('_', ' ')}, {what}")
+        name = tri.get("extractor", "?").replace("_", " ")
+        if win > 1:
+            lines += [f"centres: {name}, smoothed over {win} columns",
+                      f"  along the stripe (half amplitude at a "
+                      f"{half_amplitude_columns(int(win)):.1f}-column ripple)"]
+        else:
+            lines.append(f"centres: {name}, each column on its own")
     if c.get("points_per_frame") is not None:
         lines.append(f"points per frame {fmt(c['points_per_frame'], '', 1)}")
     if c.get("points_per_single_laser_frame") is not None:
