@@ -317,21 +317,15 @@ def half_amplitude_columns(window: int) -> float:
 
     The lateral resolution the smoothing leaves along the stripe: the frequency response of
     the local quadratic over ``window`` columns (Savitzky–Golay, centred) falls to 0.5 at
-    this period (5.2 columns for 7; inf for 1 = off).
+    this period (5.2 columns for 7; inf for 1 or 3, which leave every column as it is).
     """
-    if window <= 1:
+    if window <= 3:
         return float("inf")
-    h = window // 2
-    k = np.arange(-h, h + 1, dtype=np.float64)
-    # the centre weights of the least-squares quadratic: row 0 of (X^T X)^-1 X^T
-    X = np.vander(k, 3, increasing=True)
-    c = np.linalg.pinv(X)[0]
-    f = np.linspace(0.0, 0.5, 50001)
-    H = np.cos(2.0 * np.pi * np.outer(f, k)) @ c
-    below = np.flatnonzero(H < 0.5)
-    if below.size == 0:
-        return float("inf")
-    i = below[0]
-    # linear interpolation between the last sample above and the first below 0.5
-    fc = f[i - 1] + (H[i - 1] - 0.5) / (H[i - 1] - H[i]) * (f[i] - f[i - 1])
-    return float(1.0 / fc)
+    from scipy.optimize import brentq
+    from scipy.signal import savgol_coeffs
+
+    c = savgol_coeffs(window, 2)
+    k = np.arange(window) - window // 2
+    # the response falls monotonically from 1 at f = 0 to below 0.5 by the Nyquist frequency
+    f = brentq(lambda f: float(np.cos(2.0 * np.pi * f * k) @ c) - 0.5, 1e-9, 0.5, xtol=1e-12)
+    return float(1.0 / f)
