@@ -201,16 +201,7 @@ def test_sixteen_bit_capture(tmp_path):
 # ----------------------------------------------------------------------------- simulator
 
 
-def _sim_available() -> bool:
-    try:
-        from crossline.sim import simulate  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
 @pytest.mark.slow
-@pytest.mark.skipif(not _sim_available(), reason="crossline.sim.simulate not available yet")
 def test_quick_capture_end_to_end(quick_capture, tmp_path):
     """Stripes -> points on a rendered capture, scored with the TRUE calibration."""
     truth = json.loads((quick_capture / "truth.json").read_text())
@@ -258,7 +249,6 @@ def _normal_errors(points: pd.DataFrame, centrelines: pd.DataFrame) -> np.ndarra
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not _sim_available(), reason="crossline.sim.simulate not available yet")
 @pytest.mark.parametrize("rig", ["quick_capture", "quick_capture_compact"])
 def test_workflow_centre_lines_meet_the_centre_target(rig, request, tmp_path):
     """Issue 4: centres <= 0.05 px RMS from the true centre line, with the workflow's settings.
@@ -275,13 +265,13 @@ def test_workflow_centre_lines_meet_the_centre_target(rig, request, tmp_path):
     st = tmp_path / "s.parquet"
     run_extract_stripes(capture, "plate", st, extractor=cfg["stripes"]["extractor"], threads=2)
     tl = pd.read_parquet(capture / truth["scans"]["plate"]["centrelines"])
+    # away from the crossing: the other laser's true line more than 15 px off in the column
+    other = tl[tl["visible"]].assign(laser=lambda d: d["laser"].map({"A": "B", "B": "A"}))
     rms = {}
     for win in (1, cfg["points"]["smooth_px"]):
         pts = tmp_path / f"p{win}.parquet"
         run_triangulate(capture, "plate", st, *cal, pts, smooth_px=win)
         p = pd.read_parquet(pts)
-        # away from the crossing: the other laser's true line more than 15 px off in the column
-        other = tl[tl["visible"]].assign(laser=lambda d: d["laser"].map({"A": "B", "B": "A"}))
         near = p.assign(ui=np.round(p["u"]).astype(np.int64)).merge(
             other[["frame", "laser", "u", "v"]].rename(columns={"u": "ui", "v": "v_other"}),
             on=["frame", "laser", "ui"], how="left")
