@@ -36,12 +36,14 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from crossline.camera import Camera  # noqa: E402
 from crossline.capture import open_capture  # noqa: E402
+from crossline.centreline import half_amplitude_columns  # noqa: E402
 from crossline.framestream import decode_png, fast_decoder_available  # noqa: E402
 from crossline.laser import LaserPlanes  # noqa: E402
 from crossline.stripes import EXTRACTORS, gaussian, grey_centre, run_extract_stripes, steger  # noqa: E402
@@ -52,6 +54,8 @@ RESULTS = REPO / "benchmarks" / "results"
 CROSSING_PX = 15.0
 SCAN = "plate"
 SMOOTH_WINDOWS = (5, 7, 9)
+# the workflow's default smoothing window along the stripe (config.yaml points.smooth_px)
+SMOOTH_DEFAULT = int(yaml.safe_load((REPO / "config.yaml").read_text())["points"]["smooth_px"])
 BUDGET_FRAMES = 6  # per laser, for the error budget
 PATTERNS = (("A", "B", "AB"), ("A", "B", "AB", "AB"), ("A", "B", "AB", "AB", "AB", "AB"))
 
@@ -80,8 +84,6 @@ def render(preset: str, frames: int, pattern: list[str] | None = None) -> Path |
 
 def synthetic_capture(frames: int, seed: int = 0) -> Path:
     """A 2658x800 capture of two crossed Gaussian stripes moving frame to frame (no truth)."""
-    import yaml
-
     from crossline.atomic import write_json
     from crossline.imageio import write_png
 
@@ -146,11 +148,12 @@ def true_calibration(capture: Path, dest: Path) -> tuple[Path, Path, Path]:
 # ----------------------------------------------------------------------------- accuracy
 
 
-def workflow_smoothing() -> int:
-    """The workflow's default smoothing window along the stripe (config.yaml points.smooth_px)."""
-    import yaml
-
-    return int(yaml.safe_load((REPO / "config.yaml").read_text())["points"]["smooth_px"])
+def column_spacing_mm(points: pd.DataFrame) -> float:
+    """Median distance between the points of neighbouring columns along one stripe, mm."""
+    p = points.sort_values(["frame", "laser", "u"])
+    g = p.groupby(["frame", "laser"])
+    step = np.hypot(np.hypot(g["x_cam"].diff(), g["y_cam"].diff()), g["z_cam"].diff())
+    return float(np.nanmedian(step[(g["u"].diff().round() == 1).to_numpy()]))
 
 
 def truth_table(capture: Path) -> tuple[dict, pd.DataFrame]:
@@ -429,7 +432,7 @@ def speeds(capture: Path, cal: tuple[Path, Path, Path], repeat: int, work: Path)
             t0 = time.perf_counter()
             run_extract_stripes(capture, SCAN, st, extractor=ex, threads=2)
             t1 = time.perf_counter()
-            run_triangulate(capture, SCAN, st, *cal, pt, smooth_px=workflow_smoothing())
+            run_triangulate(capture, SCAN, st, *cal, pt, smooth_px=SMOOTH_DEFAULT)
             t2 = time.perf_counter()
             ext.append(t1 - t0)
             tri.append(t2 - t1)
@@ -444,8 +447,6 @@ def speeds(capture: Path, cal: tuple[Path, Path, Path], repeat: int, work: Path)
 
 def cycled_capture(capture: Path, n: int) -> Path:
     """A capture whose plate scan has ``n`` frames, hard links cycling the original frames."""
-    import yaml
-
     out = CACHE / f"{capture.name}-cycled-{n}"
     if (out / "scans" / SCAN / "frames.csv").is_file():
         return out
@@ -495,7 +496,7 @@ run_extract_stripes({str(capture)!r}, {SCAN!r}, {str(work / 'm.parquet')!r}, thr
         "triangulate": f"""
 from crossline.triangulate import run_triangulate
 run_triangulate({str(capture)!r}, {SCAN!r}, {str(work / 'm.parquet')!r}, {str(cal[0])!r}, {str(cal[1])!r},
-                {str(cal[2])!r}, {str(work / 'mp.parquet')!r}, smooth_px={workflow_smoothing()})
+                {str(cal[2])!r}, {str(work / 'mp.parquet')!r}, smooth_px={SMOOTH_DEFAULT})
 """,
     }
     res = {}
@@ -563,6 +564,8 @@ def main(argv=None) -> int:
                 pts = pd.read_parquet(ps)
                 r[f"centres_smooth{win}"] = score_centres(pts, tl)
                 r[f"surface_smooth{win}"] = score_surface(cap, pts, T_tool_cam)
+            # the lateral resolution the smoothing leaves, in mm on this plate
+            r["column_spacing_mm"] = column_spacing_mm(pts)
             # the paper's rule (latest frame, nearest wins) on the same centres, for comparison
             meta0 = run_triangulate(cap, SCAN, st, *cal, work / f"{preset}-{ex}-paper.parquet",
                                     ambiguity_px=0.0, predict=False)
@@ -580,10 +583,9 @@ def main(argv=None) -> int:
                 say(f"  {'':12s} noise found in the frames (median): background "
                     f"{r['noise_found']['background_noise_dn']:.2f} DN, relative (speckle) "
                     f"{r['noise_found']['relative_noise']:.3f}")
-            default = workflow_smoothing()
             tags = [("centres_used", "after end trimming", "surface")] + [
                 (f"centres_smooth{w}", f"trimmed + smoothed over {w} columns"
-                 + (" (workflow default)" if w == default else ""), f"surface_smooth{w}")
+                 + (" (workflow default)" if w == SMOOTH_DEFAULT else ""), f"surface_smooth{w}")
                 for w in SMOOTH_WINDOWS]
             for tag, what, stag in tags:
                 c = r[stag.replace("surface", "centres")] if stag != "surface" else r[tag]
@@ -593,6 +595,10 @@ def main(argv=None) -> int:
                     f"{c['away']['normal_p99_px']:.4f} px (n={c['away']['n']}); plate RMS (TRUE "
                     f"calibration and poses) "
                     f"{ssf.get('true_poses', ssf['reported_poses'])['rms_mm']:.4f} mm")
+            ripple = half_amplitude_columns(SMOOTH_DEFAULT)
+            say(f"  {'':12s} points {r['column_spacing_mm']:.4f} mm apart along the stripe (median): "
+                f"the {SMOOTH_DEFAULT}-column smoothing passes half the amplitude of a "
+                f"{ripple:.2f}-column ripple = {ripple * r['column_spacing_mm']:.3f} mm")
             for tag, L in (("ours", lb), ("paper rule", r["labels_paper_rule"])):
                 say(f"  {'':12s} labels ({tag}): wrong {L['wrong_labels']} of {L['ab_points_known']} "
                     f"AB points "
