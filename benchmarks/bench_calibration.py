@@ -43,7 +43,6 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from crossline.atomic import write_json  # noqa: E402
 from crossline.board import Board  # noqa: E402
 from crossline.calibrate.bias import centroid_offsets  # noqa: E402
 from crossline.calibrate.camera import calibrate_camera, run_calibrate_camera  # noqa: E402
@@ -57,7 +56,8 @@ from crossline.geometry import (  # noqa: E402
     rotation_angle,
     transform_points,
 )
-from crossline.imageio import read_image  # noqa: E402
+from crossline.io.atomic import write_json  # noqa: E402
+from crossline.io.images import read_image  # noqa: E402
 from crossline.laser import LaserPlanes  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"

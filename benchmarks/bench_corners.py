@@ -41,7 +41,6 @@ sys.path.insert(0, str(ROOT))
 
 from bench_calibration import DEPTHS, volume_points  # noqa: E402
 
-from crossline.atomic import write_json  # noqa: E402
 from crossline.board import Board  # noqa: E402
 from crossline.calibrate.camera import solve_views, uncertainty_summary  # noqa: E402
 from crossline.calibrate.detect import (  # noqa: E402
@@ -52,7 +51,8 @@ from crossline.calibrate.detect import (  # noqa: E402
     to_uint8,
 )
 from crossline.camera import Camera  # noqa: E402
-from crossline.imageio import read_image  # noqa: E402
+from crossline.io.atomic import write_json  # noqa: E402
+from crossline.io.images import read_image  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 BOARDS = {"paper": "chessboard:12x9:4", "compact": "chessboard:11x10:2.5"}

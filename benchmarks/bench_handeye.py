@@ -48,7 +48,6 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_calibration import DEPTHS, TARGETS, volume_points  # noqa: E402
 
-from crossline.atomic import write_json  # noqa: E402
 from crossline.calibrate.bias import centroid_offsets  # noqa: E402
 from crossline.calibrate.camera import detect_views, solve_views  # noqa: E402
 from crossline.calibrate.handeye import OPENCV_METHODS, point_uncertainty, solve_handeye  # noqa: E402
@@ -59,6 +58,7 @@ from crossline.geometry import (  # noqa: E402
     rotation_angle,
     transform_points,
 )
+from crossline.io.atomic import write_json  # noqa: E402
 from crossline.sim import arm as arm_mod  # noqa: E402
 from crossline.sim import capture as capture_mod  # noqa: E402
 from crossline.sim import views as views_mod  # noqa: E402

@@ -17,7 +17,7 @@ is. Then, for every scan and both runs:
   (same hand-eye matrix), RMS of the 3-D difference, and RMS of its component along the
   surface normal after the best rigid motion of the whole scan is taken out (an error
   common to all frames is invisible to any self-referencing; µm);
-- the artefact's figures from the fused cloud (<scan>.ply) by crossline.metrology as the
+- the artefact's figures from the fused cloud (<scan>.ply) by crossline.report.metrics as the
   report computes them: gauge height mean/std (per-frame plate reference and plate plane),
   plate share within ±0.05 mm and flatness (full range, 2.5-97.5 %), sphere size and form
   error (all points, D95), freeform RMS to the true mesh; laser A against laser B;
@@ -53,11 +53,11 @@ import yaml
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from crossline import metrology as mt  # noqa: E402
-from crossline.capture import open_capture  # noqa: E402
 from crossline.fuse import camera_centres, estimate_normals, orient_normals, read_ply  # noqa: E402
 from crossline.geometry import transform_from_pose, transform_points  # noqa: E402
-from crossline.refine import (  # noqa: E402
+from crossline.io.capture import open_capture  # noqa: E402
+from crossline.report import metrics as mt  # noqa: E402
+from crossline.scan.refine import (  # noqa: E402
     HALF_MM,
     MAX_WIDTH_RATIO,
     MIN_ANGLE_DEG,
@@ -185,7 +185,7 @@ _MESH: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 def artefact_figures(artefact: str, nominal: dict, P: np.ndarray, labels: np.ndarray,
                      frames: np.ndarray | None, up: np.ndarray | None, capture: Path,
                      truth: dict, scan: str) -> dict[str, Any]:
-    """The report's figures of one artefact (crossline.metrology, the report's settings)."""
+    """The report's figures of one artefact (crossline.report.metrics, the report's settings)."""
     out: dict[str, Any] = {}
     try:
         if artefact == "gauge_block":
@@ -216,7 +216,7 @@ def artefact_figures(artefact: str, nominal: dict, P: np.ndarray, labels: np.nda
             if ab is not None:
                 out["ab_diameter_mm"] = ab.difference["diameter_mm"]
         elif artefact == "freeform":
-            from crossline.report import read_mesh
+            from crossline.report.accuracy import read_mesh
 
             mesh = capture / truth["scans"][scan]["mesh"]
             if str(mesh) not in _MESH:

@@ -50,13 +50,13 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 from bench_refine import CACHE, arm_draws, capture_path, refine_posed, true_points  # noqa: E402
 
-from crossline import metrology as mt  # noqa: E402
 from crossline.camera import Camera  # noqa: E402
-from crossline.capture import open_capture  # noqa: E402
 from crossline.fuse import camera_centres  # noqa: E402
 from crossline.geometry import transform_from_pose, transform_points  # noqa: E402
+from crossline.io.capture import open_capture  # noqa: E402
 from crossline.laser import LaserPlanes  # noqa: E402
-from crossline.refine import (  # noqa: E402
+from crossline.report import metrics as mt  # noqa: E402
+from crossline.scan.refine import (  # noqa: E402
     HALF_MM,
     MAX_WIDTH_RATIO,
     MIN_ANGLE_DEG,
@@ -66,8 +66,8 @@ from crossline.refine import (  # noqa: E402
     solve_errors,
     usable_centres,
 )
-from crossline.stripes import run_extract_stripes  # noqa: E402
-from crossline.triangulate import triangulate  # noqa: E402
+from crossline.scan.stripes import run_extract_stripes  # noqa: E402
+from crossline.scan.triangulate import triangulate  # noqa: E402
 
 RESULTS = REPO / "benchmarks" / "results"
 LINES: list[str] = []

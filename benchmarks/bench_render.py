@@ -38,7 +38,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from crossline.capture import check_capture  # noqa: E402
+from crossline.io.capture import check_capture  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 PR_SET_CHILD_SUBREAPER = 36

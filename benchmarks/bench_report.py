@@ -91,8 +91,8 @@ def main(argv: list[str] | None = None) -> int:
         cpu.append((c1.children_user - c0.children_user) + (c1.children_system - c0.children_system))
         print(f"run {i + 1}: {times[-1]:.2f} s wall, {cpu[-1]:.2f} s CPU")
 
-    from crossline.report import build_report
-    from crossline.report_pages import render_pdf
+    from crossline.report.accuracy import build_report
+    from crossline.report.pages import render_pdf
 
     t = time.perf_counter()
     data = build_report(raw, interim, processed, a.config_json)

@@ -42,12 +42,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from crossline.camera import Camera  # noqa: E402
-from crossline.capture import open_capture  # noqa: E402
-from crossline.centreline import half_amplitude_columns  # noqa: E402
-from crossline.framestream import decode_png, fast_decoder_available  # noqa: E402
+from crossline.io.capture import open_capture  # noqa: E402
 from crossline.laser import LaserPlanes  # noqa: E402
-from crossline.stripes import EXTRACTORS, gaussian, grey_centre, run_extract_stripes, steger  # noqa: E402
-from crossline.triangulate import run_triangulate, to_base  # noqa: E402
+from crossline.scan.centreline import half_amplitude_columns  # noqa: E402
+from crossline.scan.frames import decode_png, fast_decoder_available  # noqa: E402
+from crossline.scan.stripes import EXTRACTORS, gaussian, grey_centre, run_extract_stripes, steger  # noqa: E402
+from crossline.scan.triangulate import run_triangulate, to_base  # noqa: E402
 
 CACHE = REPO / "benchmarks" / ".cache"
 RESULTS = REPO / "benchmarks" / "results"
@@ -84,8 +84,8 @@ def render(preset: str, frames: int, pattern: list[str] | None = None) -> Path |
 
 def synthetic_capture(frames: int, seed: int = 0) -> Path:
     """A 2658x800 capture of two crossed Gaussian stripes moving frame to frame (no truth)."""
-    from crossline.atomic import write_json
-    from crossline.imageio import write_png
+    from crossline.io.atomic import write_json
+    from crossline.io.images import write_png
 
     out = CACHE / f"synthetic-{frames}"
     if (out / "rig.yaml").is_file():
@@ -490,11 +490,11 @@ t0 = time.perf_counter()
 """
     jobs = {
         "extract": f"""
-from crossline.stripes import run_extract_stripes
+from crossline.scan.stripes import run_extract_stripes
 run_extract_stripes({str(capture)!r}, {SCAN!r}, {str(work / 'm.parquet')!r}, threads=2, extractor='gaussian')
 """,
         "triangulate": f"""
-from crossline.triangulate import run_triangulate
+from crossline.scan.triangulate import run_triangulate
 run_triangulate({str(capture)!r}, {SCAN!r}, {str(work / 'm.parquet')!r}, {str(cal[0])!r}, {str(cal[1])!r},
                 {str(cal[2])!r}, {str(work / 'mp.parquet')!r}, smooth_px={SMOOTH_DEFAULT})
 """,
@@ -667,7 +667,7 @@ def main(argv=None) -> int:
             say(f"  {n:5d} frames: extract (gaussian, 2 threads) {m['peak_rss_extract_mb']:.0f} MB in "
                 f"{m['extract_s']:.1f} s, triangulate {m['peak_rss_triangulate_mb']:.0f} MB in "
                 f"{m['triangulate_s']:.1f} s")
-    from crossline.atomic import write_json
+    from crossline.io.atomic import write_json
 
     write_json(RESULTS / "scan.json", report)
     (RESULTS / "scan.txt").write_text("\n".join(lines) + "\n")

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from crossline.atomic import write_json
+from crossline.io.atomic import write_json
 from crossline.jit import jit
 
 __all__ = ["Camera", "distort_normalized", "undistort_normalized"]

@@ -139,8 +139,8 @@ def _check(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-images", action="store_true", help="skip the image checks")
 
     def run(a: argparse.Namespace) -> int:
-        from crossline.atomic import write_json
-        from crossline.capture import check_capture, format_summary
+        from crossline.io.atomic import write_json
+        from crossline.io.capture import check_capture, format_summary
 
         summary = check_capture(a.capture, images=not a.no_images)
         print(format_summary(summary))
@@ -300,7 +300,7 @@ def _extract_stripes(p: argparse.ArgumentParser) -> None:
     _threads(p)
 
     def run(a: argparse.Namespace) -> int:
-        from crossline.stripes import run_extract_stripes
+        from crossline.scan.stripes import run_extract_stripes
 
         try:
             i, n = (int(x) for x in a.chunk.split("/"))
@@ -328,7 +328,7 @@ def _gather_stripes(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, required=True, help="stripes parquet to write")
 
     def run(a: argparse.Namespace) -> int:
-        from crossline.stripes import gather_stripes
+        from crossline.scan.stripes import gather_stripes
 
         gather_stripes(a.chunks, a.out)
         return 0
@@ -380,7 +380,7 @@ def _triangulate(p: argparse.ArgumentParser) -> None:
                    help="JSON of the labelling counts (default: --out with suffix .json)")
 
     def run(a: argparse.Namespace) -> int:
-        from crossline.triangulate import run_triangulate
+        from crossline.scan.triangulate import run_triangulate
 
         run_triangulate(
             a.capture, a.scan, a.stripes, a.camera, a.lasers, a.handeye, a.out,
@@ -484,7 +484,7 @@ def _report(p: argparse.ArgumentParser) -> None:
     p.add_argument("--metrics", type=Path, required=True, help="metrics.json to write")
 
     def run(a: argparse.Namespace) -> int:
-        from crossline.report import run_report
+        from crossline.report.accuracy import run_report
 
         config = a.config_file if a.config_file is not None else a.config
         run_report(a.capture, a.interim, a.processed, a.pdf, a.metrics, config=config)

@@ -11,7 +11,7 @@ second, its translation being the camera centre. Frames whose points are colline
 single stripe on a plane) borrow the centre of the nearest frame that has one.
 
 Optionally (``refine_poses``) the arm's per-frame poses are first refined from the scan
-itself (:mod:`crossline.refine`): where an A stripe crosses a B stripe of another frame the
+itself (:mod:`crossline.scan.refine`): where an A stripe crosses a B stripe of another frame the
 two must meet, and the per-frame rigid corrections that make them meet (maximum a
 posteriori, with the arm's stated precision as prior) move every point of the frame. The
 corrections and what the solve saw go into the stats JSON under ``refine``.
@@ -33,9 +33,9 @@ from typing import Any
 
 import numpy as np
 
-from crossline.atomic import atomic_path, write_json
 from crossline.errors import StageError
-from crossline.refine import HALF_MM, MAX_WIDTH_RATIO, MIN_ANGLE_DEG, ArmPrior, usable_centres
+from crossline.io.atomic import atomic_path, write_json
+from crossline.scan.refine import HALF_MM, MAX_WIDTH_RATIO, MIN_ANGLE_DEG, ArmPrior, usable_centres
 
 __all__ = [
     "LASER_CODES",
@@ -215,14 +215,14 @@ def fuse_cloud(
     ``laser`` holds codes (1 = A, 2 = B) or labels ("A"/"B"); ``points_cam`` (N, 3), the same
     points in the camera frame, orients the normals towards the camera. With
     ``refine_prior`` (and ``points_cam``, which gives each frame's camera centre) every
-    frame's pose is refined first (:func:`crossline.refine.refine_frames`); ``frame_table``
+    frame's pose is refined first (:func:`crossline.scan.refine.refine_frames`); ``frame_table``
     = (frame numbers, times in s, reported flange positions (M, 3)) from the scan's
     frames.csv gives the prior its time correlation and the rotations their centre;
     ``crossing_half_mm`` and ``crossing_min_angle_deg`` are the refinement's stripe length
     fitted either side of a crossing and the smallest crossing angle it uses; with
     ``widths`` (N,), each centre's column cut in px, centres cut over
     ``crossing_max_width_ratio`` x their laser's median make no crossings
-    (:func:`crossline.refine.usable_centres`).
+    (:func:`crossline.scan.refine.usable_centres`).
     """
     import open3d as o3d
 
@@ -281,7 +281,7 @@ def _refine(
     half_mm: float, min_angle_deg: float, crossing_mask: np.ndarray | None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Points with refined per-frame poses, and the stats of the refinement (JSON-ready)."""
-    from crossline.refine import refine_frames
+    from crossline.scan.refine import refine_frames
 
     if points_cam is None:
         raise StageError("pose refinement needs the points in the camera frame (x_cam, y_cam, "
@@ -584,7 +584,7 @@ def run_fuse(
 
 def _read_frames(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Frame numbers, times (s) and reported flange positions (mm) of a scan's frames.csv."""
-    from crossline.capture import read_frames_table
+    from crossline.io.capture import read_frames_table
 
     path = Path(path)
     if not path.is_file():

@@ -9,8 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from crossline.atomic import write_json
 from crossline.geometry import angle_between, plane_line_intersection
+from crossline.io.atomic import write_json
 
 __all__ = ["LASERS", "LaserPlane", "LaserPlanes"]
 

@@ -10,10 +10,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from crossline.atomic import write_json
 from crossline.camera import Camera
 from crossline.geometry import invert_transform, make_transform
-from crossline.imageio import read_image, write_png
+from crossline.io.atomic import write_json
+from crossline.io.images import read_image, write_png
 from crossline.sim import arm as sim_arm
 from crossline.sim import capture as sim_capture
 from crossline.sim.presets import PRESETS

@@ -17,7 +17,7 @@ import pytest
 import scipy.linalg  # noqa: F401 - and scipy's own OpenBLAS build
 from threadpoolctl import threadpool_limits
 
-from crossline.provenance import PACKAGE_ROOT, module_files
+from crossline.io.provenance import PACKAGE_ROOT, module_files
 
 # One BLAS thread per test process, as the crossline command runs (crossline.cli): each
 # pytest-xdist worker is already one of the cores, and a second BLAS thread per worker only

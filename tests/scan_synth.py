@@ -16,7 +16,7 @@ import yaml
 
 from crossline.camera import Camera
 from crossline.geometry import make_transform, matrix_to_quat, rotvec_to_matrix
-from crossline.imageio import write_png
+from crossline.io.images import write_png
 from crossline.laser import LaserPlane, LaserPlanes
 
 SENSOR = (640, 480)
@@ -153,7 +153,7 @@ def make_capture(root: Path, n_frames: int = 24, pattern=("A", "B", "AB"), seed:
 
 def write_calibration(root: Path) -> tuple[Path, Path, Path]:
     """camera.json, lasers.json and handeye.json of the true rig under ``root``."""
-    from crossline.atomic import write_json
+    from crossline.io.atomic import write_json
 
     root.mkdir(parents=True, exist_ok=True)
     camera().save(root / "camera.json")

@@ -16,7 +16,7 @@ from crossline.calibrate.handeye import HandEye
 from crossline.camera import Camera
 from crossline.cli import main
 from crossline.geometry import angle_between, transform_points
-from crossline.imageio import read_image, write_png
+from crossline.io.images import read_image, write_png
 from crossline.laser import LaserPlanes
 
 pytestmark = pytest.mark.slow

@@ -11,7 +11,7 @@ from crossline.calibrate.synthetic import look_at, render_view, sample_rays
 from crossline.camera import Camera
 from crossline.errors import CalibrationError
 from crossline.geometry import angle_between, invert_transform
-from crossline.imageio import read_image
+from crossline.io.images import read_image
 
 CAM = Camera(np.array([[2400.0, 0, 512.0], [0, 2400.0, 384.0], [0, 0, 1]]),
              np.array([-0.1, 0.15, 2e-4, -1e-4, 0.0]), (1024, 768))

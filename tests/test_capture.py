@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import yaml
 
-from crossline.capture import (
+from crossline.cli import main
+from crossline.io.capture import (
     CaptureError,
     check_capture,
     format_summary,
@@ -17,8 +18,7 @@ from crossline.capture import (
     open_capture,
     read_rig,
 )
-from crossline.cli import main
-from crossline.imageio import ImageError, png_info, read_image, write_png
+from crossline.io.images import ImageError, png_info, read_image, write_png
 
 SENSOR = (64, 48)
 WINDOW = {"x": 8, "y": 10, "width": 40, "height": 16}
@@ -232,7 +232,7 @@ def test_row_fault_and_missing_image_both_listed(capture: Path) -> None:
 
 def test_read_frames_table_alone(capture: Path) -> None:
     """The frames table on its own (the fuse stage's reader): the rows, or each fault named."""
-    from crossline.capture import CaptureError, read_frames_table
+    from crossline.io.capture import CaptureError, read_frames_table
 
     t = read_frames_table(capture / FRAMES)
     sc = open_capture(capture).scans["plate"]
@@ -426,6 +426,6 @@ def test_laser_pattern_breaks() -> None:
     long = ["A", "B"] + ["AB"] * 7
     p = laser_pattern(long * 6)
     assert p["period"] == long and p["breaks"] == []
-    from crossline.disambiguate import reference_gap
+    from crossline.scan.labels import reference_gap
 
     assert reference_gap(p["period"]) == 8

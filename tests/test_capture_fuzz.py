@@ -10,8 +10,8 @@ from pathlib import Path
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from crossline.capture import CaptureError, check_capture, open_capture, read_rig
-from crossline.imageio import ImageError, png_info, read_image
+from crossline.io.capture import CaptureError, check_capture, open_capture, read_rig
+from crossline.io.images import ImageError, png_info, read_image
 from tests.test_capture import make_capture
 
 _TEMPLATE: Path | None = None

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from crossline.centreline import (
+from crossline.scan.centreline import (
     blocked_ends,
     half_amplitude_columns,
     link_traces,

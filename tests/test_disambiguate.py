@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from crossline.disambiguate import Disambiguator, bridge_gaps, disambiguate, nearest_in_column, reference_gap
 from crossline.errors import StageError
-from crossline.stripes import MERGED
+from crossline.scan.labels import Disambiguator, bridge_gaps, disambiguate, nearest_in_column, reference_gap
+from crossline.scan.stripes import MERGED
 
 U = np.arange(100.0, 400.0)
 
@@ -299,7 +299,7 @@ def test_short_label_islands_in_a_stripe_are_dropped_long_runs_stay():
     """Along one stripe: a run of 2 A labels inside B (a stale A reference on the B stripe), a
     lone A label and a short A run among centres left unlabelled, and a longer A run among
     unlabelled centres. All but the last are islands; the longer run is a stripe and stays."""
-    from crossline.disambiguate import ISOLATED_MAX, _trace_minority
+    from crossline.scan.labels import ISOLATED_MAX, _trace_minority
 
     u = np.arange(100.0)
     v = 300.0 + 0.4 * u
@@ -324,7 +324,7 @@ def test_island_on_a_stripe_flagged_merged_here_and_there_is_still_an_island():
     frame 70: a stale A reference crossed the B stripe over 3 columns between merged ones).
     Merged centres hold no label but keep the trace whole, so the 3 A labels among the
     unlabelled rest of the stripe are an island; the merged centres themselves are not."""
-    from crossline.disambiguate import _trace_minority
+    from crossline.scan.labels import _trace_minority
 
     u = np.arange(60.0)
     v = 500.0 + 0.85 * u

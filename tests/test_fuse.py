@@ -10,8 +10,6 @@ import open3d as o3d
 import pandas as pd
 import pytest
 
-from crossline.atomic import write_parquet
-from crossline.capture import CaptureError
 from crossline.errors import StageError
 from crossline.fuse import (
     camera_centres,
@@ -21,6 +19,8 @@ from crossline.fuse import (
     voxel_down_sample,
 )
 from crossline.geometry import invert_transform, make_transform, rotvec_to_matrix, transform_points
+from crossline.io.atomic import write_parquet
+from crossline.io.capture import CaptureError
 from tests.test_report_synthetic import scan_points, scene
 
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from crossline import metrology as mt
 from crossline.camera import Camera
 from crossline.geometry import make_transform, rotvec_to_matrix, transform_points
+from crossline.report import metrics as mt
 
 K = np.array([[5145.362, 0.0, 1517.375], [0.0, 5153.664, 1023.363], [0.0, 0.0, 1.0]])
 DIST = np.array([-0.09903, 0.195427, -0.000065974, -0.0000978477, 0.41673])
@@ -409,7 +409,7 @@ def test_gauge_referenced_needs_plate_in_the_same_frames():
 def test_label_errors_against_true_lines():
     """Two true lines crossing at u = 50; three points carry the wrong laser, one of them in the
     crossing band; points where both lines are within reach are not checked."""
-    from crossline.metrology import label_errors
+    from crossline.report.metrics import label_errors
 
     u = np.arange(100)
     ta, tb = 100 + 0.5 * (u - 50), 100 - 0.5 * (u - 50)
@@ -427,7 +427,7 @@ def test_label_errors_against_true_lines():
 def test_label_errors_use_the_nearest_row_of_a_line_that_crosses_a_column_twice():
     """Laser A lights a step: two segments 40 rows apart in the same columns. Points on either
     segment are scored against their own segment, not the first row listed."""
-    from crossline.metrology import label_errors
+    from crossline.report.metrics import label_errors
 
     u = np.arange(60)
     low, high, b = np.full(60, 300.0), np.full(60, 260.0), np.full(60, 100.0)

@@ -19,7 +19,6 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from crossline import refine as R
 from crossline.fuse import camera_centres
 from crossline.geometry import (
     fit_sphere,
@@ -29,6 +28,7 @@ from crossline.geometry import (
     rotvec_to_matrix,
     transform_points,
 )
+from crossline.scan import refine as R
 from tests.test_report_synthetic import X_PAPER, scan_points, scene
 
 FPS = 80.0
@@ -291,9 +291,9 @@ def test_rendered_stripes_recover_injected_pose_errors(quick_capture: Path, tmp_
     observable part through the extraction noise of real images.
     """
     from crossline.geometry import transform_from_pose
+    from crossline.scan.stripes import run_extract_stripes
+    from crossline.scan.triangulate import run_triangulate
     from crossline.sim import write_true_calibration
-    from crossline.stripes import run_extract_stripes
-    from crossline.triangulate import run_triangulate
 
     cap = tmp_path / "cap"
     shutil.copytree(quick_capture, cap)

@@ -11,8 +11,8 @@ import pandas as pd
 import pytest
 
 from crossline.fuse import run_fuse
-from crossline.report import FORM_KEYS, build_report, load_config, points_per_frame, run_report
-from crossline.report_pages import build_pages, fmt, fmt_row_value, fmt_tolerance, page_texts
+from crossline.report.accuracy import FORM_KEYS, build_report, load_config, points_per_frame, run_report
+from crossline.report.pages import build_pages, fmt, fmt_row_value, fmt_tolerance, page_texts
 from tests.test_report_synthetic import make_capture
 
 SCANS = ("gauge", "plate", "ball", "part")
@@ -59,7 +59,7 @@ def test_gain_over_a_single_line_is_four_thirds():
 
 
 def test_residual_vectors_in_either_layout(synthetic):
-    from crossline.report_pages import _find_residuals
+    from crossline.report.pages import _find_residuals
 
     raw = json.loads((synthetic[1] / "calibration" / "camera.json").read_text())
     uv, du = _find_residuals(raw)
@@ -296,7 +296,7 @@ def test_cli_report(synthetic, tmp_path):
 def test_read_mesh_is_exact(tmp_path):
     import open3d as o3d
 
-    from crossline.report import read_mesh
+    from crossline.report.accuracy import read_mesh
 
     rng = np.random.default_rng(3)
     V = rng.uniform(-500, 500, (50, 3)) + 1e-7 * rng.random((50, 3))  # digits float32 would lose

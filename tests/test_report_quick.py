@@ -7,10 +7,10 @@ import json
 
 import pytest
 
-from crossline.centreline import half_amplitude_columns
 from crossline.cli import main
-from crossline.report import build_report
-from crossline.report_pages import build_pages, fmt, fmt_row_value, page_texts
+from crossline.report.accuracy import build_report
+from crossline.report.pages import build_pages, fmt, fmt_row_value, page_texts
+from crossline.scan.centreline import half_amplitude_columns
 
 pytestmark = pytest.mark.slow
 
@@ -28,7 +28,7 @@ def quick_pipeline(quick_capture, tmp_path_factory):
         ["calibrate-handeye", cap, "--camera", str(cal / "camera.json"), "--out",
          str(cal / "handeye.json"), "--threads", "2"],
     ]
-    from crossline.capture import read_rig
+    from crossline.io.capture import read_rig
 
     for s in sorted(read_rig(quick_capture / "rig.yaml").scans):
         st = root / "interim" / "stripes" / f"{s}.parquet"

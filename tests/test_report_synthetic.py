@@ -17,7 +17,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from crossline.atomic import write_json, write_parquet
 from crossline.geometry import (
     invert_transform,
     make_transform,
@@ -25,6 +24,7 @@ from crossline.geometry import (
     transform_points,
     transform_to_pose,
 )
+from crossline.io.atomic import write_json, write_parquet
 
 K_PAPER = [[5145.362, 0.0, 1517.375], [0.0, 5153.664, 1023.363], [0.0, 0.0, 1.0]]
 DIST_PAPER = [-0.09903, 0.195427, -0.000065974, -0.0000978477, 0.41673]

@@ -15,9 +15,9 @@ import yaml
 
 from crossline.board import Board
 from crossline.camera import Camera
-from crossline.capture import check_capture, open_capture
 from crossline.errors import CrosslineError
 from crossline.geometry import invert_transform, transform_from_pose
+from crossline.io.capture import check_capture, open_capture
 from crossline.sim import simulate
 from crossline.sim.presets import PRESETS, CalibrationSpec
 
@@ -238,8 +238,8 @@ def test_refuses_to_overwrite_and_leaves_nothing_half_written(tmp_path, monkeypa
 def test_written_pngs_read_back_identically_with_every_decoder(tmp_path, dtype):
     """crossline's PNGs (Average filter, Huffman-only zlib; the simulator's frames) are plain
     PNGs: OpenCV, the project's fast decoder and its chunk checker read them, pixel for pixel."""
-    from crossline.framestream import decode_png, fast_decoder_available
-    from crossline.imageio import png_info, read_image, write_png
+    from crossline.io.images import png_info, read_image, write_png
+    from crossline.scan.frames import decode_png, fast_decoder_available
 
     rng = np.random.default_rng(6)
     top = np.iinfo(dtype).max

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from scipy.special import erf
 
-from crossline.framestream import decode_png, fast_decoder_available, map_frames, read_frame
-from crossline.imageio import ImageError
-from crossline.stripes import CLOSE, EDGE, MERGED, SATURATED, gaussian, grey_centre, steger
+from crossline.io.images import ImageError
+from crossline.scan.frames import decode_png, fast_decoder_available, map_frames, read_frame
+from crossline.scan.stripes import CLOSE, EDGE, MERGED, SATURATED, gaussian, grey_centre, steger
 
 H, W = 120, 200
 

@@ -14,9 +14,9 @@ from crossline.camera import Camera
 from crossline.errors import StageError
 from crossline.geometry import transform_from_pose
 from crossline.laser import LaserPlane, LaserPlanes
+from crossline.scan.stripes import gather_stripes, read_stripes_meta, run_extract_stripes
+from crossline.scan.triangulate import read_points_meta, run_triangulate, to_base, triangulate
 from crossline.sim import write_true_calibration
-from crossline.stripes import gather_stripes, read_stripes_meta, run_extract_stripes
-from crossline.triangulate import read_points_meta, run_triangulate, to_base, triangulate
 from tests import scan_synth as S
 
 

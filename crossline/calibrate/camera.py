@@ -263,7 +263,7 @@ def detect_views(
     paths: list[Path], board: Board, shape: tuple[int, int], threads: int = 1
 ) -> list[Detection]:
     """Board detections for image files, in order (read and detected in ``threads`` threads)."""
-    from crossline.imageio import read_image
+    from crossline.io.images import read_image
 
     def one(p: Path) -> Detection:
         return detect_board(read_image(p, shape), board)
@@ -352,7 +352,7 @@ def run_calibrate_camera(
     ``handeye/*.png``): same camera, same board, and the intrinsics' precision grows with the
     number of views (the principal point above all).
     """
-    from crossline.capture import open_capture
+    from crossline.io.capture import open_capture
 
     if views not in VIEW_SETS:
         raise ValueError(f"views must be one of {VIEW_SETS}, got {views!r}")

@@ -44,7 +44,6 @@ from typing import Any
 import cv2
 import numpy as np
 
-from crossline.atomic import write_json
 from crossline.board import Board
 from crossline.calibrate.bias import centroid_offsets
 from crossline.calibrate.detect import board_symmetries
@@ -62,6 +61,7 @@ from crossline.geometry import (
     rotvec_to_matrix,
     transform_points,
 )
+from crossline.io.atomic import write_json
 
 __all__ = [
     "OPENCV_METHODS",
@@ -749,7 +749,7 @@ def run_calibrate_handeye(
 ) -> HandEye:
     """Stage: solve X = T_tool_cam from ``calibration/handeye`` and write ``handeye.json``."""
     from crossline.calibrate.camera import detect_views
-    from crossline.capture import open_capture
+    from crossline.io.capture import open_capture
 
     cv2.setNumThreads(1)  # parallelism comes from our pool of `threads` workers (determinism)
     cap = open_capture(capture)

@@ -4,7 +4,7 @@ For each pose of each laser:
 
 1. the board pose ``T_cam_board`` by PnP on the lasers-off image (bias-corrected centres);
 2. the stripe: laser-on minus lasers-off image (ambient light and the board's print cancel),
-   grey-centre per column (:func:`crossline.stripes.grey_centre`; per row when the stripe is
+   grey-centre per column (:func:`crossline.scan.stripes.grey_centre`; per row when the stripe is
    steeper than 45°, so that profiles cut the stripe at the smaller angle), with the
    threshold as a fraction of the stripe's peak level on the board's plate (its light area,
    or its dark one for light circles; within the board's outline, ``margin_px`` clear of the
@@ -176,7 +176,7 @@ def stripe_points(
     ``threshold`` is a fraction of the stripe's peak level in laser-on minus lasers-off.
     Raises :class:`CalibrationError` naming ``name`` when no stripe lies on the board.
     """
-    from crossline.stripes import full_scale, grey_centre
+    from crossline.scan.stripes import full_scale, grey_centre
 
     det = detect_board(board_image, board)
     if not det.found:
@@ -347,8 +347,8 @@ def run_calibrate_lasers(
     margin_px: float = 4.0,
 ) -> LaserPlanes:
     """Stage: fit the planes of lasers A and B and write ``lasers.json``."""
-    from crossline.capture import open_capture
-    from crossline.imageio import read_image
+    from crossline.io.capture import open_capture
+    from crossline.io.images import read_image
 
     cv2.setNumThreads(1)  # parallelism comes from our pool of `threads` workers (determinism)
     cap = open_capture(capture)

@@ -53,11 +53,11 @@ import cv2
 import numpy as np
 import yaml
 
-from crossline.atomic import atomic_path, write_json, write_parquet
 from crossline.board import Board
 from crossline.errors import CrosslineError
 from crossline.geometry import invert_transform, transform_to_pose
-from crossline.imageio import write_png
+from crossline.io.atomic import atomic_path, write_json, write_parquet
+from crossline.io.images import write_png
 from crossline.sim import arm as arm_mod
 from crossline.sim import views as views_mod
 from crossline.sim.part import part_mesh, write_ply

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from crossline.atomic import atomic_path
+from crossline.io.atomic import atomic_path
 from crossline.sim.scene import FreeformPart
 
 __all__ = ["part_mesh", "write_ply"]

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from crossline.atomic import write_json
 from crossline.camera import Camera
-from crossline.capture import open_capture
+from crossline.io.atomic import write_json
+from crossline.io.capture import open_capture
 from crossline.laser import LaserPlanes
 
 __all__ = ["write_true_calibration"]

@@ -4,7 +4,7 @@
 checkpoint check_capture:
     input:
         capture=capture_input,
-        code=code("crossline.capture"),
+        code=code("crossline.io.capture"),
     output:
         summary="data/interim/{capture}/check.json",
     log:

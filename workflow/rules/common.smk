@@ -7,7 +7,7 @@ from pathlib import Path
 
 from snakemake.utils import validate
 
-from crossline.provenance import PACKAGE_ROOT, module_files
+from crossline.io.provenance import PACKAGE_ROOT, module_files
 
 
 CAPTURE_NAME = r"[A-Za-z0-9_][A-Za-z0-9_.-]*"

@@ -6,7 +6,7 @@ rule fuse_points:
         points="data/interim/{capture}/points/{scan}.parquet",
         # frame times and reported flange positions: the pose refinement's prior and centres
         frames="data/raw/{capture}/scans/{scan}/frames.csv",
-        code=code("crossline.fuse", "crossline.refine"),
+        code=code("crossline.fuse", "crossline.scan.refine"),
     output:
         cloud="data/processed/{capture}/{scan}.ply",
         stats="data/processed/{capture}/{scan}.fuse.json",

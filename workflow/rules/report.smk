@@ -4,7 +4,7 @@
 rule render_report:
     input:
         unpack(report_inputs),
-        code=code("crossline.report"),
+        code=code("crossline.report.accuracy"),
     output:
         pdf="reports/{capture}/accuracy.pdf",
         metrics="reports/{capture}/metrics.json",

@@ -5,7 +5,7 @@ rule extract_stripes:
     input:
         summary="data/interim/{capture}/check.json",
         frames=scan_frames_input,
-        code=code("crossline.stripes"),
+        code=code("crossline.scan.stripes"),
     output:
         part="data/interim/{capture}/stripes/{scan}/part{i}-of-{n}.parquet",
     params:
@@ -39,7 +39,7 @@ rule extract_stripes:
 rule gather_stripes:
     input:
         parts=stripe_chunks,
-        code=code("crossline.stripes"),
+        code=code("crossline.scan.stripes"),
     output:
         stripes="data/interim/{capture}/stripes/{scan}.parquet",
     log:
@@ -57,7 +57,7 @@ rule triangulate_points:
         lasers="data/interim/{capture}/calibration/lasers.json",
         handeye="data/interim/{capture}/calibration/handeye.json",
         frames="data/raw/{capture}/scans/{scan}/frames.csv",
-        code=code("crossline.triangulate"),
+        code=code("crossline.scan.triangulate"),
     output:
         points="data/interim/{capture}/points/{scan}.parquet",
         stats="data/interim/{capture}/points/{scan}.json",

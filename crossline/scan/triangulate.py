@@ -6,7 +6,7 @@ through the camera centre is intersected with the plane of the centre's laser
 frame with its frame's arm pose: ``p_base = T_base_tool(frame) @ T_tool_cam @ p_cam``.
 
 :func:`run_triangulate` streams the stripes file row group by row group (a row group is a
-fixed slice of frames), labels the centres (:mod:`crossline.disambiguate`), triangulates and
+fixed slice of frames), labels the centres (:mod:`crossline.scan.labels`), triangulates and
 writes ``points/<scan>.parquet`` with the counts of the labelling in its metadata and in a
 sidecar ``points/<scan>.json``: memory does not grow with the scan's length.
 """
@@ -23,14 +23,14 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from crossline.atomic import atomic_path, write_json
 from crossline.camera import Camera
-from crossline.centreline import blocked_ends, link_traces, smooth_along, trace_position
-from crossline.disambiguate import Disambiguator, check_pattern, reference_gap
 from crossline.errors import StageError
 from crossline.geometry import transform_points
+from crossline.io.atomic import atomic_path, write_json
 from crossline.laser import LaserPlanes
-from crossline.stripes import MERGED, read_stripes_meta
+from crossline.scan.centreline import blocked_ends, link_traces, smooth_along, trace_position
+from crossline.scan.labels import Disambiguator, check_pattern, reference_gap
+from crossline.scan.stripes import MERGED, read_stripes_meta
 
 log = logging.getLogger(__name__)
 
@@ -134,16 +134,16 @@ def run_triangulate(
     Writes ``out`` (parquet, counts in its metadata under ``crossline``) and the same counts
     as JSON to ``stats`` (default: ``out`` with the suffix ``.json``). Centres within
     ``end_trim_px`` pixels (along the stripe) of the end of their trace are dropped; ``smooth_px`` > 1 smooths
-    the centre line along each trace over that many columns (:mod:`crossline.centreline`).
+    the centre line along each trace over that many columns (:mod:`crossline.scan.centreline`).
     Up to ``bridge_columns`` columns missing in a reference stripe between two of its centres
-    are interpolated before AB centres are matched (:func:`crossline.disambiguate.bridge_gaps`);
+    are interpolated before AB centres are matched (:func:`crossline.scan.labels.bridge_gaps`);
     with ``track_references`` an AB frame's labelled stripes are the references of the next.
     ``max_frame_gap=None`` allows one frame more than the scan's own laser pattern needs
-    (:func:`crossline.disambiguate.reference_gap`): 3 for the paper's A, B, AB. ``smooth_px``
+    (:func:`crossline.scan.labels.reference_gap`): 3 for the paper's A, B, AB. ``smooth_px``
     defaults to 1 (every column on its own, as the paper); the workflow's config smooths
     over 5.
     """
-    from crossline.capture import laser_pattern, open_capture
+    from crossline.io.capture import laser_pattern, open_capture
 
     t0 = time.perf_counter()
     cap = open_capture(capture)

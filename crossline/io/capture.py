@@ -25,7 +25,7 @@ import yaml
 from crossline.board import PATTERNS, Board
 from crossline.errors import CrosslineError
 from crossline.geometry import transform_from_pose
-from crossline.imageio import ImageError, png_info
+from crossline.io.images import ImageError, png_info
 
 __all__ = [
     "ARTEFACTS",

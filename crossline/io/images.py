@@ -16,8 +16,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from crossline.atomic import atomic_path
 from crossline.errors import CrosslineError
+from crossline.io.atomic import atomic_path
 
 # libpng's warnings about broken files would duplicate the errors raised here
 cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)

@@ -15,7 +15,7 @@ from pathlib import Path
 
 __all__ = ["file_sha256", "git_commit", "module_files"]
 
-PACKAGE_ROOT = Path(__file__).resolve().parent
+PACKAGE_ROOT = Path(__file__).resolve().parents[1]
 
 
 def _module_path(name: str) -> Path | None:

@@ -1,13 +1,13 @@
 """The accuracy report of a capture: every figure measured, checked and written twice.
 
 ``run_report`` reads the calibrations, the points and the fused clouds of a capture,
-measures each scan's artefact (``crossline.metrology``), compares laser A with laser B,
+measures each scan's artefact (``crossline.report.metrics``), compares laser A with laser B,
 scores everything against ``truth.json`` when the capture is simulated, and writes
 
 - ``metrics.json``: every figure of the report, with its tolerance and PASS/FAIL, and the
   provenance (version, commit, parameters, input checksums, capture date);
 - ``accuracy.pdf``: the same numbers as pages a metrologist reads like a calibration
-  certificate (``crossline.report_pages`` draws them from the metrics, never from anything
+  certificate (``crossline.report.pages`` draws them from the metrics, never from anything
   else, so the two cannot disagree).
 
 Both are deterministic: same inputs, same bytes. Nothing here depends on the clock.
@@ -29,8 +29,8 @@ from typing import Any
 import numpy as np
 
 from crossline import __version__
-from crossline.atomic import atomic_path, to_jsonable, write_json
 from crossline.errors import CrosslineError
+from crossline.io.atomic import atomic_path, to_jsonable, write_json
 
 __all__ = [
     "DEFAULT_METROLOGY",
@@ -135,14 +135,14 @@ def _read_json(path: Path) -> dict | None:
 
 
 def _sha256(path: Path) -> str:
-    from crossline.provenance import file_sha256
+    from crossline.io.provenance import file_sha256
 
     return file_sha256(path)
 
 
 def _git_commit() -> str | None:
     try:
-        from crossline.provenance import git_commit
+        from crossline.io.provenance import git_commit
 
         return git_commit()
     except Exception:  # provenance must never stop a report
@@ -311,7 +311,7 @@ def _up_vector(cloud: dict[str, np.ndarray]) -> np.ndarray | None:
 
 
 def _basis(up: np.ndarray) -> np.ndarray:
-    from crossline.metrology import plane_basis
+    from crossline.report.metrics import plane_basis
 
     return plane_basis(up)
 
@@ -319,7 +319,7 @@ def _basis(up: np.ndarray) -> np.ndarray:
 def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: Path,
                   files: list) -> dict[str, Any]:
     """The figures of one scan (counts, artefact, A vs B, truth) and its plot arrays."""
-    from crossline import metrology as mt
+    from crossline.report import metrics as mt
 
     out: dict[str, Any] = {"artefact": sd.artefact, "nominal": sd.nominal,
                            "cloud_source": sd.cloud_source or None}
@@ -464,7 +464,7 @@ def _label_truth(points: Path, centrelines: Path, files: list) -> dict[str, Any]
     """Wrong A/B labels of the AB-frame points against the simulator's true centre lines."""
     import pandas as pd
 
-    from crossline import metrology as mt
+    from crossline.report import metrics as mt
 
     if not centrelines.is_file():
         return None
@@ -528,7 +528,7 @@ def _plane4(v: list, like: np.ndarray | None = None) -> tuple[np.ndarray, float]
 
 
 def _gauge_truth(g: Any, P: np.ndarray, tscan: dict, nominal: float) -> dict[str, Any]:
-    from crossline import metrology as mt
+    from crossline.report import metrics as mt
 
     t: dict[str, Any] = {"true_height_mm": float(tscan.get("height", nominal))}
     f = g.figures()
@@ -601,7 +601,7 @@ def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
 def _mesh_deviation(P: np.ndarray, path: Path, files: list,
                     towards: np.ndarray | None = None) -> np.ndarray | None:
     """Signed distance of the points to the true mesh, positive outside (towards the scanner)."""
-    from crossline.metrology import mesh_signed_distance
+    from crossline.report.metrics import mesh_signed_distance
 
     if not path.is_file():
         log.warning("%s: the true mesh is missing; no freeform validation", path)
@@ -705,8 +705,8 @@ def _calibration(inputs: dict[str, dict | None]) -> dict[str, Any]:
 
 def _validation(inputs: dict, truth: dict, rig: Any, met: dict) -> dict[str, Any]:
     """Calibration errors against the simulator's truth, over the measured volume."""
-    from crossline import metrology as mt
     from crossline.camera import Camera
+    from crossline.report import metrics as mt
 
     v: dict[str, Any] = {"volume_z_mm": list(met["volume_z_mm"])}
     z = tuple(float(x) for x in met["volume_z_mm"])
@@ -762,7 +762,7 @@ def build_report(
     capture: Path, interim_dir: Path, processed_dir: Path, config: Any = None
 ) -> ReportData:
     """Measure everything a report shows; return the metrics (JSON-ready) and plot arrays."""
-    from crossline.capture import read_rig
+    from crossline.io.capture import read_rig
 
     capture, interim_dir, processed_dir = Path(capture), Path(interim_dir), Path(processed_dir)
     full, tol, met = load_config(config)
@@ -896,7 +896,7 @@ def run_report(
     config: Any = None,
 ) -> dict[str, Any]:
     """The ``report`` stage: measure, then write ``metrics.json`` and ``accuracy.pdf``."""
-    from crossline.report_pages import render_pdf
+    from crossline.report.pages import render_pdf
 
     capture = Path(capture)
     if not (capture / "rig.yaml").is_file():

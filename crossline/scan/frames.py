@@ -26,7 +26,7 @@ from typing import TypeVar
 import cv2
 import numpy as np
 
-from crossline.imageio import ImageError
+from crossline.io.images import ImageError
 from crossline.jit import HAVE_NUMBA, jit
 
 __all__ = ["DECODERS", "decode_png", "fast_decoder_available", "map_frames", "read_frame"]

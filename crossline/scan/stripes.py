@@ -73,11 +73,11 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from crossline.atomic import atomic_path
 from crossline.errors import CrosslineError, StageError
-from crossline.framestream import map_frames
+from crossline.io.atomic import atomic_path
 from crossline.jit import HAVE_NUMBA
 from crossline.jit import jit as _jit
+from crossline.scan.frames import map_frames
 
 log = logging.getLogger(__name__)
 
@@ -1226,7 +1226,7 @@ def run_extract_stripes(
     ``extractor`` defaults to the paper's grey centre; the workflow's config uses the
     Gaussian fit.
     """
-    from crossline.capture import open_capture
+    from crossline.io.capture import open_capture
 
     if extractor not in EXTRACTORS:
         raise StageError(f"unknown extractor {extractor!r}; expected one of {EXTRACTORS}")

@@ -30,8 +30,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
-from crossline.disambiguate import nearest_in_column
 from crossline.geometry import angle_between, fit_sphere, plane_distance
+from crossline.scan.labels import nearest_in_column
 
 __all__ = [
     "ABComparison",

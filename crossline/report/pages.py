@@ -25,7 +25,7 @@ import numpy as np
 from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure
 
-from crossline.centreline import half_amplitude_columns
+from crossline.scan.centreline import half_amplitude_columns
 
 __all__ = ["A4", "build_pages", "fmt", "fmt_row_value", "fmt_tolerance", "render_pdf"]
 

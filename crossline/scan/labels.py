@@ -39,10 +39,10 @@ from typing import Any
 
 import numpy as np
 
-from crossline.centreline import link_traces, trace_position
 from crossline.errors import StageError
 from crossline.jit import jit
-from crossline.stripes import MERGED
+from crossline.scan.centreline import link_traces, trace_position
+from crossline.scan.stripes import MERGED
 
 __all__ = ["DROP_REASONS", "Disambiguator", "bridge_gaps", "disambiguate", "nearest_in_column",
            "reference_gap"]
