@@ -153,7 +153,7 @@ def test_editing_a_module_reruns_its_stages(done_workdir: Path, tmp_path: Path) 
     n = len(json.loads((done_workdir / "data/interim/q/check.json").read_text())["scans"])
     wd = tmp_path / "copy"
     shutil.copytree(done_workdir, wd, symlinks=True)
-    module = wd / "crossline" / "stripes.py"
+    module = wd / "crossline" / "scan" / "stripes.py"
     module.write_text(module.read_text() + "\n# an edit\n")
     jobs = planned_jobs(wd)
     # the laser-plane calibration centres its stripes with the same extractor
@@ -164,7 +164,7 @@ def test_editing_a_module_reruns_its_stages(done_workdir: Path, tmp_path: Path) 
     # the report module is imported by the report alone
     wd2 = tmp_path / "copy2"
     shutil.copytree(done_workdir, wd2, symlinks=True)
-    report = wd2 / "crossline" / "report.py"
+    report = wd2 / "crossline" / "report" / "accuracy.py"
     report.write_text(report.read_text() + "\n# an edit\n")
     assert planned_jobs(wd2) == {"render_report": 1}
 
