@@ -129,8 +129,10 @@ def _simulate(p: argparse.ArgumentParser) -> None:
     "validate a capture folder and print its summary",
     """
     Reads rig.yaml, every CSV and every image header of a capture and prints a summary
-    (views per set, frames per scan, laser pattern, duration, scan window), or every
-    problem found, each naming the file, the line and what was expected.
+    (views per set, frames per scan, laser pattern, duration, scan window, and which stages
+    the capture allows and why not the others), or every problem found, each naming the
+    file, the line and what was expected. Every part of a capture is optional; every file
+    it names or holds must lie inside its folder (no '..', absolute paths or links out).
     """,
 )
 def _check(p: argparse.ArgumentParser) -> None:

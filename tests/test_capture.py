@@ -431,3 +431,437 @@ def test_laser_pattern_breaks() -> None:
     from crossline.scan.labels import reference_gap
 
     assert reference_gap(p["period"]) == 8
+
+
+# --------------------------------------------------------------------------- rig.yaml: new keys
+
+
+def test_rig_defaults_keep_old_construction() -> None:
+    """New fields come last with defaults: older constructions still work."""
+    from crossline.io.capture import Rig, ScanSpec, Sensor
+
+    s = Sensor(64, 48, 8)
+    assert (s.data_bits, s.channel) == (None, None)
+    assert ScanSpec("p", "plane").mesh is None
+    rig = read_rig(make_capture_rig_only())
+    assert rig.lasers == ("A", "B") and rig.sensor.data_bits is None and rig.sensor.channel is None
+    assert Rig(s, rig.scan_window, 80.0, rig.board, {}).lasers == ("A", "B")
+
+
+def make_capture_rig_only() -> Path:
+    import tempfile
+
+    d = Path(tempfile.mkdtemp(prefix="crossline-rig-"))
+    (d / "rig.yaml").write_text(yaml.safe_dump(RIG, sort_keys=False))
+    return d / "rig.yaml"
+
+
+def test_rig_new_keys_read(capture: Path) -> None:
+    def f(d):
+        d["sensor"].update(data_bits=8, channel="red")
+        d["lasers"] = ["B", "A"]
+
+    edit_rig(capture, f)
+    rig = read_rig(capture / "rig.yaml")
+    assert rig.lasers == ("A", "B") and rig.sensor.data_bits == 8 and rig.sensor.channel == "red"
+    s = check_capture(capture)
+    assert s["sensor"]["data_bits"] == 8 and s["sensor"]["channel"] == "red"
+    assert s["lasers"] == ["A", "B"]
+    assert "8-bit (8 data bits), 80 frames/s, red channel" in format_summary(s)
+
+
+@pytest.mark.parametrize(("key", "value", "expected"), [
+    ("lasers", ["A", "A"], "'lasers' must be a list of distinct laser names from ['A', 'B']"),
+    ("lasers", ["C"], "got ['C']"),
+    ("lasers", "A", "got 'A'"),
+    ("lasers", [], "got []"),
+    ("data_bits", 12, "'sensor.data_bits' = 12 exceeds 'sensor.bit_depth' = 8"),
+    ("data_bits", 9, "'sensor.data_bits' must be one of [8, 10, 12, 14, 16], got 9"),
+    ("data_bits", "twelve", "'sensor.data_bits' must be an integer, got 'twelve'"),
+    ("channel", "purple", "'sensor.channel' must be one of ['grey', 'red', 'green', 'blue'], got 'purple'"),
+])
+def test_rig_new_keys_refused(capture: Path, key: str, value, expected: str) -> None:
+    edit_rig(capture, lambda d: (d if key == "lasers" else d["sensor"]).__setitem__(key, value))
+    msg = problems_of(capture)
+    assert expected in msg
+    if key != "data_bits" or value != "twelve":  # the new keys' problems carry their line
+        assert "rig.yaml, line " in msg
+
+
+def test_rig_without_scans(capture: Path) -> None:
+    shutil.rmtree(capture / "scans")
+    edit_rig(capture, lambda d: d.pop("scans"))
+    s = check_capture(capture)
+    assert s["scans"] == {} and s["stages"]["scans"] == {"allowed": False,
+                                                         "why": "rig.yaml describes no scans"}
+    edit_rig(capture, lambda d: d.__setitem__("scans", {}))
+    assert check_capture(capture)["scans"] == {}
+
+
+# --------------------------------------------------------------------------- partial captures
+
+
+def one_laser(capture: Path) -> None:
+    """The capture as a single-line rig: lasers [A], every scan frame A."""
+    shutil.rmtree(capture / "calibration/laser_B")
+    edit_rig(capture, lambda d: d.__setitem__("lasers", ["A"]))
+    for scan in ("plate", "gauge"):
+        p = capture / f"scans/{scan}/frames.csv"
+        p.write_text(p.read_text().replace(",AB,", ",A,").replace(",B,", ",A,"))
+
+
+def test_one_laser_rig(capture: Path) -> None:
+    one_laser(capture)
+    cap = open_capture(capture)
+    assert cap.rig.lasers == ("A",) and set(cap.laser_views) == {"A"}
+    s = check_capture(capture)
+    assert s["views"] == {"camera": 3, "laser_A": 2, "handeye": 3}
+    assert all(v["allowed"] for v in s["stages"].values())
+    assert s["scans"]["plate"]["pattern"] == ["A"]
+
+
+def test_one_laser_rig_refuses_other_laser(capture: Path) -> None:
+    one_laser(capture)
+    edit_csv_line(capture / FRAMES, 3, "1,0.0125,AB,0.4,1.5,150,1,0,0,0")
+    shutil.copytree(capture / "calibration/laser_A", capture / "calibration/laser_B")
+    msg = problems_of(capture)
+    assert (f"{FRAMES}, line 3: laser state 'AB' names laser B, which the rig lacks "
+            f"(rig.yaml lasers: [A])") in msg
+    assert "calibration/laser_B: rig.yaml lasers: [A] but calibration/laser_B exists" in msg
+
+
+def test_missing_folders_are_no_problem(capture: Path) -> None:
+    """Deliberate change: a capture without handeye/ (or any other part) opens; the stages say
+    what it allows."""
+    shutil.rmtree(capture / "calibration/handeye")
+    s = check_capture(capture)
+    assert s["views"]["handeye"] == 0
+    st = s["stages"]
+    assert st["calibrate_camera"]["allowed"] and st["calibrate_lasers"]["allowed"]
+    assert st["calibrate_handeye"] == {"allowed": False,
+                                       "why": "no calibration/handeye views with arm poses"}
+    assert st["scans"]["why"] == "needs calibrate_handeye (no calibration/handeye views with arm poses)"
+    text = format_summary(s)
+    assert "stages       allows calibrate_camera, calibrate_lasers" in text
+    assert "not calibrate_handeye: no calibration/handeye views with arm poses" in text
+
+
+def test_camera_views_only(capture: Path) -> None:
+    for d in ("calibration/laser_A", "calibration/laser_B", "calibration/handeye", "scans"):
+        shutil.rmtree(capture / d)
+    (capture / "calibration/handeye").mkdir()  # an empty folder is as good as none
+    from crossline.io.capture import allowed_stages
+
+    why = allowed_stages(capture)
+    assert why["calibrate_camera"] is None
+    assert why["calibrate_lasers"] == "no calibration/laser_A views; no calibration/laser_B views"
+    assert why["calibrate_handeye"] == "no calibration/handeye views with arm poses"
+    assert why["scans"] == "no scans/ folder"
+    assert check_capture(capture)["views"] == {"camera": 3, "laser_A": 0, "laser_B": 0, "handeye": 0}
+
+
+def test_camera_from_other_sets(capture: Path) -> None:
+    """Without camera/, the camera calibrates on the laser and hand-eye sets' lasers-off views."""
+    from crossline.io.capture import allowed_stages
+
+    shutil.rmtree(capture / "calibration/camera")
+    assert all(w is None for w in allowed_stages(capture).values())
+    shutil.rmtree(capture / "calibration/handeye")
+    for p in (capture / "calibration").glob("laser_*/*_board.png"):
+        p.unlink()
+    why = allowed_stages(capture)
+    assert why["calibrate_camera"].startswith("no calibration/camera views")
+    assert why["calibrate_lasers"] == "needs calibrate_camera"
+
+
+def test_broken_folders_still_are(capture: Path) -> None:
+    (capture / POSES).unlink()
+    shutil.rmtree(capture / "calibration/laser_A")
+    (capture / "calibration/laser_A").mkdir()
+    write_png(capture / "calibration/laser_A/p0_laser.png", _img(48, 64, 0))
+    msg = problems_of(capture)
+    assert f"{POSES}: missing: the arm pose of every hand-eye image is needed" in msg
+    assert "calibration/laser_A: has 1 pose(s) with a laser image; the laser plane needs at least 2" in msg
+
+
+def test_handeye_few_poses_and_header_only(capture: Path) -> None:
+    from crossline.io.capture import allowed_stages
+
+    for i in (1, 2):
+        edit_csv_line(capture / POSES, 3, None)
+        (capture / f"calibration/handeye/pose_{i:02d}.png").unlink()
+    assert allowed_stages(capture)["calibrate_handeye"] == (
+        "calibration/handeye has 1 view(s) with arm poses; the hand-eye calibration needs at least 3")
+    (capture / POSES).write_text("image,x,y,z,qw,qx,qy,qz\n")
+    assert f"{POSES}: has 0 pose rows for 1 hand-eye images" in problems_of(capture)
+
+
+def test_laser_always_on(capture: Path) -> None:
+    """Poses with a laser image only: the board is to be found despite the stripe."""
+    for p in (capture / "calibration/laser_A").glob("*_board.png"):
+        p.unlink()
+    cap = open_capture(capture)
+    assert [v.board_image for v in cap.laser_views["A"]] == [None, None]
+    assert all(v.board_image is not None for v in cap.laser_views["B"])
+    s = check_capture(capture)
+    assert s["laser_views_without_board"] == {"laser_A": 2, "laser_B": 0}
+    assert "laser always on (no lasers-off twin): laser_A 2 pose(s)" in format_summary(s)
+
+
+def test_unknown_laser_folder(capture: Path) -> None:
+    (capture / "calibration/laser_C").mkdir()
+    assert "calibration/laser_C: unknown laser 'C'" in problems_of(capture)
+
+
+# --------------------------------------------------------------------------- nominal mesh
+
+
+def _freeform(capture: Path, nominal) -> None:
+    edit_rig(capture, lambda d: d["scans"].__setitem__("plate", {"artefact": "freeform",
+                                                                "nominal": nominal}))
+
+
+def test_nominal_mesh(capture: Path) -> None:
+    (capture / "nominal").mkdir()
+    (capture / "nominal/part.STL").write_text("solid part\nendsolid part\n")
+    _freeform(capture, "nominal/part.STL")
+    assert read_rig(capture / "rig.yaml").scans["plate"].mesh == "nominal/part.STL"
+    s = check_capture(capture)
+    assert s["scans"]["plate"]["mesh"] == "nominal/part.STL"
+    assert "freeform (mesh nominal/part.STL)" in format_summary(s)
+
+
+@pytest.mark.parametrize(("nominal", "expected"), [
+    ("part.stl", "'scans.plate.nominal' = 'part.stl' has no file in the capture"),
+    ("part.step", "'scans.plate.nominal' = 'part.step' must be a mesh file (.stl, .ply, .obj)"),
+    ("../evil.stl", "'scans.plate.nominal' = '../evil.stl' leads out of its folder ('..')"),
+    ("/etc/passwd", "'scans.plate.nominal' = '/etc/passwd' is an absolute path"),
+    (12, "'scans.plate.nominal' must be a mesh file's path relative to the capture"),
+])
+def test_nominal_mesh_refused(capture: Path, nominal, expected: str) -> None:
+    (capture.parent / "evil.stl").write_text("solid evil\n")
+    _freeform(capture, nominal)
+    msg = problems_of(capture)
+    assert expected in msg
+    lines = (capture / "rig.yaml").read_text().splitlines()
+    line = next(i for i, t in enumerate(lines, 1) if t.strip().startswith("nominal:"))
+    assert f"rig.yaml, line {line}: 'scans.plate.nominal'" in msg
+
+
+def test_nominal_mesh_symlink_outside(capture: Path, tmp_path: Path) -> None:
+    (tmp_path / "outside.stl").write_text("solid evil\n")
+    (capture / "part.stl").symlink_to(tmp_path / "outside.stl")
+    _freeform(capture, "part.stl")
+    msg = problems_of(capture)
+    assert "'scans.plate.nominal' = 'part.stl' is a symbolic link to" in msg
+    assert "outside the capture" in msg
+
+
+def test_nominal_on_other_artefact(capture: Path) -> None:
+    edit_rig(capture, lambda d: d["scans"]["gauge"].__setitem__("nominal", "gauge.stl"))
+    assert "'scans.gauge.nominal' names a mesh, which only a freeform takes" in problems_of(capture)
+
+
+# --------------------------------------------------------------------------- paths inside the capture
+
+
+def test_poses_csv_name_outside(capture: Path, tmp_path: Path) -> None:
+    """Issue 23.1: '..', absolute paths and links out are refused with file, line and reason."""
+    write_png(tmp_path / "evil.png", _img(48, 64, 0))
+    edit_csv_line(capture / POSES, 2, "../../evil.png,100,20.5,300,1,0,0,0")
+    edit_csv_line(capture / POSES, 3, "/etc/passwd,100,20.5,300,1,0,0,0")
+    msg = problems_of(capture)
+    assert f"{POSES}, line 2: image '../../evil.png' leads out of its folder ('..')" in msg
+    assert f"{POSES}, line 3: image '/etc/passwd' is an absolute path" in msg
+
+
+def test_symlink_outside_refused(capture: Path, tmp_path: Path) -> None:
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    write_png(outside / "evil.png", _img(48, 64, 0))
+    he = capture / "calibration/handeye"
+    (he / "pose_01.png").unlink()
+    (he / "pose_01.png").symlink_to(outside / "evil.png")
+    (capture / "calibration/camera/view_03.png").symlink_to(Path("/tmp"))
+    frame = capture / "scans/plate/frames/000002.png"
+    frame.unlink()
+    frame.symlink_to(outside / "evil.png")
+    msg = problems_of(capture)
+    evil = outside / "evil.png"
+    assert f"calibration/handeye/pose_01.png: is a symbolic link to {evil}, outside the capture" in msg
+    assert f"{POSES}, line 3: image 'pose_01.png' is a symbolic link to" in msg
+    assert "calibration/camera/view_03.png: is a symbolic link to /tmp, outside the capture" in msg
+    assert "scans/plate/frames/000002.png: is a symbolic link to" in msg
+
+
+def test_folder_symlink_outside_refused(capture: Path, tmp_path: Path) -> None:
+    shutil.move(capture / "calibration/camera", tmp_path / "camera")
+    (capture / "calibration/camera").symlink_to(tmp_path / "camera")
+    assert f"calibration/camera: is a symbolic link to {tmp_path / 'camera'}, outside the capture" in (
+        problems_of(capture))
+
+
+def test_symlinks_inside_are_fine(capture: Path) -> None:
+    shutil.move(capture / "calibration/camera", capture / "camera_views")
+    (capture / "calibration/camera").symlink_to(Path("../camera_views"))
+    assert check_capture(capture)["views"]["camera"] == 3
+
+
+def test_rig_yaml_symlink_outside(capture: Path, tmp_path: Path) -> None:
+    shutil.move(capture / "rig.yaml", tmp_path / "rig.yaml")
+    (capture / "rig.yaml").symlink_to(tmp_path / "rig.yaml")
+    assert "rig.yaml: is a symbolic link to" in problems_of(capture)
+
+
+def test_scan_name_outside(capture: Path) -> None:
+    edit_rig(capture, lambda d: d["scans"].__setitem__("../../x", {"artefact": "plane"}))
+    assert "scan name '../../x' leads out of its folder" in problems_of(capture)
+
+
+# --------------------------------------------------------------------------- image formats
+
+
+def _colour(h: int, w: int) -> np.ndarray:
+    """An (H, W, 3) image in the order red, green, blue, each channel distinct."""
+    rng = np.random.default_rng(5)
+    return np.stack([rng.integers(0, 80, (h, w)), rng.integers(90, 170, (h, w)),
+                     rng.integers(180, 255, (h, w))], axis=-1).astype(np.uint8)
+
+
+def test_read_image_channels_and_order(tmp_path: Path) -> None:
+    import cv2
+
+    from crossline.io.images import read_image_channels, write_image
+
+    rgb = _colour(20, 30)
+    for ext in (".png", ".tif", ".bmp"):
+        p = tmp_path / f"c{ext}"
+        write_image(p, rgb)
+        np.testing.assert_array_equal(read_image(p, (20, 30), channel="red"), rgb[:, :, 0])
+        np.testing.assert_array_equal(read_image(p, channel="green"), rgb[:, :, 1])
+        np.testing.assert_array_equal(read_image(p, channel="blue"), rgb[:, :, 2])
+        lum = cv2.cvtColor(np.ascontiguousarray(rgb[:, :, ::-1]), cv2.COLOR_BGR2GRAY)
+        np.testing.assert_array_equal(read_image(p), lum)
+        np.testing.assert_array_equal(read_image(p, channel="grey"), lum)
+        np.testing.assert_array_equal(read_image_channels(p), rgb)
+    grey = _img(20, 30, 1)
+    write_image(tmp_path / "g.bmp", grey)
+    np.testing.assert_array_equal(read_image(tmp_path / "g.bmp", channel="red"), grey)
+    assert read_image_channels(tmp_path / "g.bmp").shape == (20, 30, 1)
+    # 16-bit colour TIFF: never scaled
+    rgb16 = rgb.astype(np.uint16) * 257 + 3
+    write_image(tmp_path / "c16.tiff", rgb16)
+    out = read_image(tmp_path / "c16.tiff", channel="blue")
+    assert out.dtype == np.uint16
+    np.testing.assert_array_equal(out, rgb16[:, :, 2])
+    with pytest.raises(ValueError, match="channel must be one of"):
+        read_image(tmp_path / "g.bmp", channel="infrared")
+
+
+def test_image_info_formats(tmp_path: Path) -> None:
+    from crossline.io.images import image_info, write_image
+
+    cases = {"a.png": (_img(20, 30, 0), 8, 1, "PNG"), "b.jpg": (_colour(20, 30), 8, 3, "JPEG"),
+             "c.TIF": (_img(20, 30, 0).astype(np.uint16), 16, 1, "TIFF"),
+             "d.bmp": (_colour(20, 30), 8, 3, "BMP"), "e.jpeg": (_img(20, 30, 0), 8, 1, "JPEG")}
+    for name, (img, bits, ch, fmt) in cases.items():
+        write_image(tmp_path / name, img)
+        info = image_info(tmp_path / name)
+        got = (info.width, info.height, info.bit_depth, info.channels, info.format)
+        assert got == (30, 20, bits, ch, fmt)
+
+
+def _png_header_claiming(w: int, h: int) -> bytes:
+    import struct
+    import zlib
+
+    def chunk(t: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + t + body + struct.pack(">I", zlib.crc32(t + body))
+
+    ihdr = struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0)
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 10))
+            + chunk(b"IEND", b""))
+
+
+def _tiff_claiming(w: int, h: int, data_len: int, strip_bytes: int) -> bytes:
+    """A little-endian grey 8-bit TIFF header claiming w x h, with data_len bytes of pixels."""
+    import struct
+
+    tags = [(256, 4, w), (257, 4, h), (258, 3, 8), (259, 3, 1), (262, 3, 1), (273, 4, 8),
+            (277, 3, 1), (278, 4, h), (279, 4, strip_bytes)]
+    ifd_at = 8 + data_len
+    out = b"II*\0" + struct.pack("<I", ifd_at) + b"\x80" * data_len + struct.pack("<H", len(tags))
+    for tag, typ, val in tags:
+        out += struct.pack("<HHI", tag, typ, 1) + (struct.pack("<HH", val, 0) if typ == 3
+                                                    else struct.pack("<I", val))
+    return out + b"\0\0\0\0"
+
+
+def test_huge_headers_refused_before_allocation(tmp_path: Path) -> None:
+    from crossline.io.images import image_info
+
+    (tmp_path / "big.png").write_bytes(_png_header_claiming(60000, 60000))
+    (tmp_path / "big.tif").write_bytes(_tiff_claiming(12000, 12000, 16, 12000 * 12000))
+    (tmp_path / "huge.tif").write_bytes(_tiff_claiming(60000, 60000, 16, 60000 * 60000))
+    for name in ("big.png", "big.tif", "huge.tif"):
+        for fn in (image_info, read_image):
+            with pytest.raises(ImageError, match=rf"{name}: header claims .*100 MP"):
+                fn(tmp_path / name)
+    (tmp_path / "ok.tif").write_bytes(_tiff_claiming(4, 4, 16, 16))
+    assert image_info(tmp_path / "ok.tif").width == 4
+    assert read_image(tmp_path / "ok.tif").shape == (4, 4)
+
+
+def test_truncated_other_formats(tmp_path: Path) -> None:
+    from crossline.io.images import image_info, write_image
+
+    (tmp_path / "t.tif").write_bytes(_tiff_claiming(40, 40, 16, 1600))
+    write_image(tmp_path / "t.jpg", _colour(200, 300))
+    write_image(tmp_path / "t.bmp", _colour(20, 30))
+    for name in ("t.jpg", "t.bmp"):
+        data = (tmp_path / name).read_bytes()
+        (tmp_path / name).write_bytes(data[: len(data) * 2 // 3])
+    for name, fmt in (("t.tif", "TIFF"), ("t.jpg", "JPEG"), ("t.bmp", "BMP")):
+        for fn in (image_info, read_image):
+            with pytest.raises(ImageError, match=rf"{name}: truncated {fmt}"):
+                fn(tmp_path / name)
+
+
+def test_capture_in_other_formats(capture: Path) -> None:
+    """Calibration views and scan frames as JPEG, TIFF and BMP, any extension case."""
+    from crossline.io.images import write_image
+
+    cam = capture / "calibration/camera"
+    for i, ext in enumerate((".jpg", ".TIF", ".bmp")):
+        (cam / f"view_{i:02d}.png").unlink()
+        write_image(cam / f"view_{i:02d}{ext}", _colour(48, 64) if i == 0 else _img(48, 64, i))
+    d = capture / "calibration/laser_A"
+    (d / "pose0_laser.png").unlink()
+    write_image(d / "pose0_laser.jpeg", _img(48, 64, 0))
+    frames = capture / "scans/plate/frames"
+    for p in sorted(frames.glob("*.png")):
+        img = read_image(p)
+        p.unlink()
+        write_image(p.with_suffix(".tiff"), img)
+    cap = open_capture(capture)
+    assert [p.name for p in cap.camera_images] == ["view_00.jpg", "view_01.TIF", "view_02.bmp"]
+    assert cap.laser_views["A"][0].laser_image.name == "pose0_laser.jpeg"
+    sc = cap.scans["plate"]
+    assert sc.frame_path(3) == frames / "000003.tiff" and all(p.is_file() for p in sc.frame_paths)
+    s = check_capture(capture)
+    assert s["image_formats"] == {"BMP": 1, "JPEG": 2, "PNG": 16, "TIFF": 7}
+    assert s["scans"]["plate"]["frame_format"] == "tiff"
+    write_png(frames / "000004.png", _img(16, 40, 0))
+    assert "scans/plate/frames: frames have several extensions (.png, .tiff)" in problems_of(capture)
+
+
+def test_bit_depth_against_rig(capture: Path) -> None:
+    from crossline.io.images import write_image
+
+    (capture / "calibration/camera/view_00.png").unlink()
+    write_image(capture / "calibration/camera/view_00.jpg", _img(48, 64, 0))
+    edit_rig(capture, lambda d: d["sensor"].__setitem__("bit_depth", 16))
+    msg = problems_of(capture)
+    assert ("calibration/camera/view_00.jpg: JPEG image has 8-bit samples, expected 16 "
+            "(rig.yaml sensor.bit_depth)") in msg
+    assert "calibration/camera/view_01.png: PNG image has 8-bit samples, expected 16" in msg
