@@ -9,6 +9,8 @@ checkpoint check_capture:
         summary="data/interim/{capture}/check.json",
     log:
         "logs/{capture}/check.log",
+    resources:
+        mem_mb=1000,
     conda:
         "../envs/crossline.yaml"
     shell:

@@ -44,6 +44,8 @@ rule gather_stripes:
         stripes="data/interim/{capture}/stripes/{scan}.parquet",
     log:
         "logs/{capture}/gather_stripes/{scan}.log",
+    resources:
+        mem_mb=2000,
     conda:
         "../envs/crossline.yaml"
     shell:
