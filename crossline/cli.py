@@ -462,6 +462,28 @@ def _fuse(p: argparse.ArgumentParser) -> None:
 
 
 @command(
+    "export-cloud",
+    "a fused cloud as E57, for CloudCompare and inspection software",
+    """
+    Writes the points and normals of a fused cloud (the fuse stage's PLY, base frame, mm) as
+    one ASTM E57 scan, in metres as the standard defines, byte-reproducibly.
+    """,
+)
+def _export_cloud(p: argparse.ArgumentParser) -> None:
+    p.add_argument("cloud", type=Path, help="fused cloud (PLY) of the fuse stage")
+    p.add_argument("--out", type=Path, required=True, help="E57 file to write")
+
+    def run(a: argparse.Namespace) -> int:
+        from crossline.io.clouds import run_export_cloud
+
+        n = run_export_cloud(a.cloud, a.out)
+        print(f"{a.out}: {n} points")
+        return 0
+
+    p.set_defaults(func=run)
+
+
+@command(
     "report",
     "accuracy report (PDF) and metrics.json of a capture",
     """
