@@ -80,6 +80,8 @@ def _threads(p: argparse.ArgumentParser) -> None:
 
 # ----------------------------------------------------------------------------- simulate
 
+_non_negative = _checked(float, lambda x: x >= 0, "a number >= 0")
+
 
 @command(
     "simulate",
@@ -89,16 +91,42 @@ def _threads(p: argparse.ArgumentParser) -> None:
     truth.json, exactly as a real rig would write them (DESIGN.md §2). Images are traced
     ray by ray from supersampled sensor positions through the lens distortion, then blurred,
     given shot and read noise and quantised. The same seed gives byte-identical files.
+    `--preset random --seed N` (or `--rig random`) draws a whole rig from the seed: sensor
+    1-12 MP and its scan window, 8/10/12/16-bit data, board type and polarity, lens and
+    distortion, laser planes at any cross orientation, exposure, ambient light, noise,
+    pattern, arm noise (random-small: sensors up to 2.3 MP, for tests). Options below make
+    the captures real rigs write: one laser, JPEG/TIFF/BMP, colour, laser always on,
+    calibration views only, a noisy arm.
     """,
 )
 def _simulate(p: argparse.ArgumentParser) -> None:
     p.add_argument("out", type=Path, help="capture folder to write (must not exist or be empty)")
-    p.add_argument("--preset", default="paper", help="virtual rig: paper (default) or compact")
+    p.add_argument("--preset", "--rig", dest="preset", default="paper",
+                   help="virtual rig: paper (default), compact, random or random-small (drawn "
+                        "from --seed)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--quick", action="store_true", help="small capture for tests (seconds)")
     p.add_argument("--frames", type=int, help="frames per scan (default: preset's)")
     p.add_argument("--pattern", help="laser pattern per period, e.g. A,B,AB or A,B,AB,AB")
-    p.add_argument("--bit-depth", type=int, choices=(8, 16), help="image bit depth")
+    p.add_argument("--bit-depth", type=int, choices=(8, 16), help="image bit depth (container)")
+    p.add_argument("--data-bits", type=int, choices=(8, 10, 12, 14, 16),
+                   help="the ADC's bits inside the container (default: the rig's; a 12-bit "
+                        "camera writes 0..4095 into 16-bit images)")
+    p.add_argument("--lasers", choices=("A", "A,B"), metavar="A|A,B",
+                   help="A: a one-line rig (default A,B)")
+    p.add_argument("--image-format", choices=("png", "jpeg", "tiff", "bmp"), default="png",
+                   help="file format of every image (default png; jpeg and bmp are 8-bit)")
+    p.add_argument("--jpeg-quality", type=int, default=95, help="JPEG quality 1-100 (default 95)")
+    p.add_argument("--colour", choices=("red", "green", "blue", "none"), default="none",
+                   help="a colour (Bayer) sensor, the laser mainly in this channel (default none: grey)")
+    p.add_argument("--laser-always-on", action="store_true",
+                   help="laser-plane poses as <pose>_laser.* only, no laser-off twin")
+    p.add_argument("--calibration-only", action="store_true", help="no scans (no scans: in rig.yaml)")
+    p.add_argument("--no-handeye", action="store_true", help="no calibration/handeye/")
+    p.add_argument("--parts", help="comma-separated parts to write among camera,lasers,handeye,scans "
+                                   "(default all)")
+    p.add_argument("--arm-noise-scale", type=_non_negative, default=1.0, metavar="K",
+                   help="the arm's reported-pose noise times K (default 1)")
     p.add_argument("--scans", help="comma-separated subset of the preset's scans")
     p.add_argument("--board", type=_board_spec, metavar="SPEC",
                    help="calibration board instead of the preset's: pattern:COLSxROWS:spacing"
@@ -110,11 +138,17 @@ def _simulate(p: argparse.ArgumentParser) -> None:
     def run(a: argparse.Namespace) -> int:
         from crossline.sim import simulate
 
+        parts = a.parts.split(",") if a.parts else ["camera", "lasers", "handeye", "scans"]
+        if a.no_handeye:
+            parts = [x for x in parts if x != "handeye"]
         simulate(
             a.out, preset=a.preset, seed=a.seed, quick=a.quick, frames=a.frames,
             pattern=a.pattern.split(",") if a.pattern else None, bit_depth=a.bit_depth,
             scans=a.scans.split(",") if a.scans else None, force=a.force, threads=a.threads,
-            board=a.board,
+            board=a.board, data_bits=a.data_bits,
+            lasers=a.lasers.split(",") if a.lasers else None, image_format=a.image_format,
+            jpeg_quality=a.jpeg_quality, colour=a.colour, laser_always_on=a.laser_always_on,
+            calibration_only=a.calibration_only, arm_noise_scale=a.arm_noise_scale, parts=parts,
         )
         return 0
 
@@ -281,8 +315,12 @@ def _extract_stripes(p: argparse.ArgumentParser) -> None:
     p.add_argument("--extractor", choices=("grey_centre", "gaussian", "steger"), default="gaussian",
                    help="gaussian (default): weighted least-squares Gaussian profile, speckle-aware; "
                         "grey_centre: the paper's eq. 9; steger: Hessian ridge detector")
-    p.add_argument("--threshold", type=float, default=0.15,
-                   help="stripe threshold as a fraction of full scale (default 0.15)")
+    p.add_argument("--threshold", type=float, default=0.10,
+                   help="a stripe's run: pixels above the background by this fraction of the "
+                        "frame's stripe peak, and by 6 noise sigmas at least (default 0.10)")
+    p.add_argument("--min-peak", type=float, default=0.17,
+                   help="drop runs whose brightest pixel stands less than this fraction of the "
+                        "frame's stripe peak above the background (default 0.17)")
     p.add_argument("--min-width", type=float, default=2.0, help="narrowest stripe, px")
     p.add_argument("--max-width", type=float, default=30.0, help="widest stripe, px")
     p.add_argument("--sigma", type=float, default=2.0, help="Steger's Gaussian sigma, px")
@@ -313,7 +351,7 @@ def _extract_stripes(p: argparse.ArgumentParser) -> None:
             min_width=a.min_width, max_width=a.max_width, sigma=a.sigma, chunk=(i, n),
             threads=a.threads, pad=a.pad, fit_pad=a.fit_pad,
             relative_noise=a.relative_noise, fit_across=a.fit_across,
-            decoder=a.decoder,
+            decoder=a.decoder, min_peak=a.min_peak,
         )
         return 0
 
@@ -512,6 +550,41 @@ def _report(p: argparse.ArgumentParser) -> None:
 
         config = a.config_file if a.config_file is not None else a.config
         run_report(a.capture, a.interim, a.processed, a.pdf, a.metrics, config=config)
+        return 0
+
+    p.set_defaults(func=run)
+
+
+@command(
+    "certificate",
+    "calibration certificate (PDF) and calibration.json of a capture's calibrations",
+    """
+    Every calibration the capture allowed, checked against the certificate's limits: camera
+    parameters with their 1 sigma, per-view residuals, the residual field and the sensor's
+    coverage by board points; each laser plane with its residuals per board pose; the
+    hand-eye X with its consistency; PASS/FAIL. Needs the camera; lasers and hand-eye are
+    shown when given. Deterministic PDF.
+    """,
+)
+def _certificate(p: argparse.ArgumentParser) -> None:
+    p.add_argument("capture", type=Path, help="capture folder")
+    p.add_argument("--summary", type=Path, help="the capture's check.json (which stages it allows)")
+    p.add_argument("--camera", type=Path, required=True, help="camera.json")
+    p.add_argument("--lasers", type=Path, help="lasers.json, if the capture has laser views")
+    p.add_argument("--handeye", type=Path, help="handeye.json, if the capture has hand-eye views")
+    cfg = p.add_mutually_exclusive_group()
+    cfg.add_argument("--config-json", dest="config", metavar="JSON",
+                     help="JSON text of the parameters with the limits under 'certificate'")
+    cfg.add_argument("--config", dest="config_file", type=Path, help="the same from a JSON file")
+    p.add_argument("--pdf", type=Path, required=True, help="calibration.pdf to write")
+    p.add_argument("--json", type=Path, required=True, help="calibration.json to write")
+
+    def run(a: argparse.Namespace) -> int:
+        from crossline.report.certificate import run_certificate
+
+        config = a.config_file if a.config_file is not None else a.config
+        run_certificate(a.capture, a.pdf, a.json, summary=a.summary, camera=a.camera,
+                        lasers=a.lasers, handeye=a.handeye, config=config)
         return 0
 
     p.set_defaults(func=run)

@@ -10,12 +10,14 @@ sensor chain, speckle), ``scene`` (analytic primitives), ``scenes`` (artefacts a
 ``texture`` (board patterns), ``sheet`` (laser irradiance), ``render`` (images and the true
 stripe), ``arm`` (trajectories and pose noise), ``views`` (calibration poses), ``part`` (the
 freeform's truth mesh), ``capture`` (this package's writer, in ``simulate``), ``truth`` (the true
-calibration written as the stages' artefacts, to score later stages alone).
+calibration written as the stages' artefacts, to score later stages alone), ``random_rig`` (whole
+rigs drawn from a seed: ``simulate(out, "random", seed)``), ``colour`` (a Bayer colour sensor).
 """
 
 from __future__ import annotations
 
 from crossline.sim.capture import simulate
+from crossline.sim.random_rig import random_rig
 from crossline.sim.truth import write_true_calibration
 
-__all__ = ["simulate", "write_true_calibration"]
+__all__ = ["random_rig", "simulate", "write_true_calibration"]

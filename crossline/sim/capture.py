@@ -6,6 +6,12 @@ on one thread, like a render in one process); PNGs are written with a fixed row 
 level and strategy, CSVs with ``repr`` floats, JSON and YAML in a fixed key order, so the
 same seed gives byte-identical files.
 
+Options make the captures real rigs write (see ``simulate``): a one-laser rig, ADC data bits
+inside a 16-bit container, JPEG / TIFF / BMP files, a colour (Bayer) sensor
+(``crossline.sim.colour``), laser-plane poses with the laser always on, any subset of the
+parts (camera, lasers, handeye, scans), a noisier arm. ``truth.json`` then records them under
+``capture_options``; a random rig (``crossline.sim.random_rig``) its draw under ``rig_draw``.
+
 ``truth.json`` (format ``crossline-truth/1``; only validation may read it):
 
 * ``camera``: ``K``, ``dist`` (k1, k2, p1, p2, k3), ``image_size``;
@@ -57,20 +63,37 @@ from crossline.board import Board
 from crossline.errors import CrosslineError
 from crossline.geometry import invert_transform, transform_to_pose
 from crossline.io.atomic import atomic_path, write_json, write_parquet
-from crossline.io.images import write_png
+from crossline.io.images import write_image, write_png
 from crossline.sim import arm as arm_mod
 from crossline.sim import views as views_mod
+from crossline.sim.colour import CHANNELS, ColourSensor, laser_wavelength
 from crossline.sim.part import part_mesh, write_ply
 from crossline.sim.presets import PRESETS, RigPreset
+from crossline.sim.random_rig import RANDOM_PRESETS, random_rig
 from crossline.sim.render import Light, RigModel, render_image
 from crossline.sim.scenes import board_scene_free, board_scene_table, freeform_part, scan_scene
 
-__all__ = ["simulate"]
+__all__ = ["IMAGE_FORMATS", "PARTS", "simulate"]
 
 LASER_STATES = ("A", "B", "AB", "off")
+PARTS = ("camera", "lasers", "handeye", "scans")  # what a capture may hold
+IMAGE_FORMATS = {"png": ".png", "jpeg": ".jpg", "tiff": ".tif", "bmp": ".bmp"}
+EIGHT_BIT_ONLY = ("jpeg", "bmp")
+ALWAYS_ON_AMBIENT = 0.5  # laser-on poses without a twin: room light at this share of the board views'
 KIND_CAMERA, KIND_LASER, KIND_HANDEYE, KIND_SCAN = 1, 2, 3, 4
 GRAD_MM = 0.0015  # relative change of ambient light per mm across the scene
 SCAN_CHUNK = 3  # frames per job: small jobs, so that the two workers finish together
+
+
+@dataclass(frozen=True)
+class Output:
+    """How images are written: ADC bits, file format, colour, laser-on poses without a twin."""
+
+    data_bits: int | None = None  # None: the container's
+    ext: str = ".png"
+    jpeg_quality: int = 95
+    colour: str | None = None  # the laser's channel of a colour (Bayer) sensor
+    always_on: bool = False
 
 
 @dataclass
@@ -82,6 +105,7 @@ class Plan:
     bits: int
     root: Path
     jobs: list = field(default_factory=list)
+    out: Output = Output()
 
 
 # ----------------------------------------------------------------------------- workers
@@ -92,12 +116,24 @@ _SCENES: dict = {}
 
 def _model(plan: Plan) -> RigModel:
     # a worker receives a fresh copy of the preset with every job: key on its content
-    key = (plan.preset.name, plan.bits, plan.seed, repr(plan.preset))
+    key = (plan.preset.name, plan.bits, plan.seed, repr(plan.preset), plan.out)
     if key not in _MODELS:
         _MODELS.clear()
         _SCENES.clear()
-        _MODELS[key] = RigModel(plan.preset, plan.bits, plan.seed)
+        _MODELS[key] = RigModel(plan.preset, plan.bits, plan.seed, plan.out.data_bits)
+        c = plan.out.colour
+        _MODELS[key].colour = None if c is None else ColourSensor(
+            c, {k: v.wavelength_nm for k, v in plan.preset.lasers.items()})
     return _MODELS[key]
+
+
+def _write(plan: Plan, rel: str, img: np.ndarray) -> None:
+    """One image of the capture in its format (grey PNG: the fixed-encoding writer)."""
+    path = plan.root / rel
+    if img.ndim == 2 and path.suffix == ".png":
+        write_png(path, img)
+    else:
+        write_image(path, img, jpeg_quality=plan.out.jpeg_quality)
 
 
 def _worker_init() -> None:
@@ -158,27 +194,36 @@ def _run(plan: Plan, job: tuple) -> tuple[str, Any, int]:
     preset = plan.preset
     kind = job[0]
     full = model.sensor_window
+    colour = model.colour
     if kind == "camera":
         _, i, T, rel = job
         scene = board_scene_free(preset.board).transformed(T)
         light = _light_board(T, preset.ambient_board_e, _board_centre(preset))
         dn, _, _ = render_image(model, scene, light, full, (), _rng(plan.seed, KIND_CAMERA, i),
-                                ambient="full", truth=False)
-        write_png(plan.root / rel, dn)
+                                ambient="full", truth=False, colour=colour)
+        _write(plan, rel, dn)
         return kind, None, 1
     if kind == "laser":
         _, laser, i, T, rel_board, rel_laser = job
         li = "AB".index(laser)
         scene = board_scene_free(preset.board).transformed(T)
-        light = _light_board(T, preset.ambient_board_e, _board_centre(preset))
-        dn, _, _ = render_image(model, scene, light, full, (), _rng(plan.seed, KIND_LASER, li, i, 0),
-                                ambient="full", truth=False)
-        write_png(plan.root / rel_board, dn)
-        light = _light_board(T, preset.ambient_scan_e, _board_centre(preset))
-        dn, _, _ = render_image(model, scene, light, full, (laser,),
-                                _rng(plan.seed, KIND_LASER, li, i, 1), ambient="coarse", truth=False)
-        write_png(plan.root / rel_laser, dn)
-        return kind, None, 2
+        if rel_board is not None:
+            light = _light_board(T, preset.ambient_board_e, _board_centre(preset))
+            dn, _, _ = render_image(model, scene, light, full, (),
+                                    _rng(plan.seed, KIND_LASER, li, i, 0), ambient="full",
+                                    truth=False, colour=colour)
+            _write(plan, rel_board, dn)
+            light = _light_board(T, preset.ambient_scan_e, _board_centre(preset))
+            dn, _, _ = render_image(model, scene, light, full, (laser,),
+                                    _rng(plan.seed, KIND_LASER, li, i, 1), ambient="coarse",
+                                    truth=False, colour=colour)
+        else:  # laser always on: one image in which the board must be found despite the stripe
+            light = _light_board(T, ALWAYS_ON_AMBIENT * preset.ambient_board_e, _board_centre(preset))
+            dn, _, _ = render_image(model, scene, light, full, (laser,),
+                                    _rng(plan.seed, KIND_LASER, li, i, 1), ambient="full",
+                                    truth=False, colour=colour)
+        _write(plan, rel_laser, dn)
+        return kind, None, 1 if rel_board is None else 2
     if kind == "handeye":
         _, i, T_cam_base, rel = job
         key = ("handeye",)
@@ -188,8 +233,8 @@ def _run(plan: Plan, job: tuple) -> tuple[str, Any, int]:
         centre = preset.T_base_board[:3, :3] @ _board_centre(preset) + preset.T_base_board[:3, 3]
         light = _light_base(T_cam_base, preset.ambient_board_e, centre)
         dn, _, _ = render_image(model, scene, light, full, (), _rng(plan.seed, KIND_HANDEYE, i),
-                                ambient="full", truth=False)
-        write_png(plan.root / rel, dn)
+                                ambient="full", truth=False, colour=colour)
+        _write(plan, rel, dn)
         return kind, None, 1
     if kind == "scan":
         _, si, name, frames = job
@@ -205,8 +250,9 @@ def _run(plan: Plan, job: tuple) -> tuple[str, Any, int]:
             scene = scene_base.transformed(T_cam_base)
             light = _light_base(T_cam_base, preset.ambient_scan_e, aim)
             dn, rows, st = render_image(model, scene, light, model.scan_window, lasers,
-                                        _rng(plan.seed, KIND_SCAN, si, frame), ambient="coarse")
-            write_png(plan.root / "scans" / name / "frames" / f"{frame:06d}.png", dn)
+                                        _rng(plan.seed, KIND_SCAN, si, frame), ambient="coarse",
+                                        colour=colour)
+            _write(plan, f"scans/{name}/frames/{frame:06d}{plan.out.ext}", dn)
             # plain arrays: the parent makes the tables (workers never import pandas)
             tables.extend((frame, laser, r) for laser, r in rows.items() if r is not None)
             stats.append({"frame": frame, "peak_dn": int(dn.max()), **st})
@@ -226,12 +272,19 @@ def _pose_row(T: np.ndarray) -> list[str]:
     return [_fmt(v) for v in p] + [_fmt(v) for v in q]
 
 
-def _resolve(preset: RigPreset | str) -> RigPreset:
+def _resolve(preset: RigPreset | str, seed: int = 0) -> RigPreset:
     if isinstance(preset, RigPreset):
         return preset
+    if preset in RANDOM_PRESETS:
+        return random_rig(seed, small=preset == "random-small")
     if preset not in PRESETS:
-        raise CrosslineError(f"unknown preset {preset!r}; expected one of {sorted(PRESETS)}")
+        raise CrosslineError(f"unknown preset {preset!r}; expected one of "
+                             f"{sorted(PRESETS) + list(RANDOM_PRESETS)}")
     return PRESETS[preset]
+
+
+def _states_of(lasers: tuple[str, ...]) -> tuple[str, ...]:
+    return ("A", "off") if lasers == ("A",) else LASER_STATES
 
 
 def simulate(
@@ -247,30 +300,118 @@ def simulate(
     threads: int = 1,
     progress: bool = True,
     board: Board | None = None,
+    data_bits: int | None = None,
+    lasers: tuple[str, ...] | list[str] | None = None,
+    image_format: str = "png",
+    jpeg_quality: int = 95,
+    colour: str | None = None,
+    laser_always_on: bool = False,
+    calibration_only: bool = False,
+    arm_noise_scale: float = 1.0,
+    parts: tuple[str, ...] | list[str] | None = None,
 ) -> Path:
     """Render a complete capture folder of a virtual rig at ``out``; return its path.
 
-    ``board`` replaces the preset's calibration board (pattern, size, spacing), printed
-    in the preset's albedos on a plate of the preset's margin.
+    ``preset``: ``paper``, ``compact``, ``random`` or ``random-small`` (a rig drawn from
+    ``seed``, see ``crossline.sim.random_rig``) or a ``RigPreset``. ``board`` replaces the
+    preset's calibration board (pattern, size, spacing), printed in the preset's albedos on a
+    plate of the preset's margin. The options of real captures:
+
+    * ``bit_depth`` (8 or 16, the container) and ``data_bits`` (8, 10, 12, 14, 16: the ADC's
+      range in it, default the rig's; rig.yaml ``sensor.data_bits`` when below the container);
+    * ``lasers=("A",)``: a one-line rig (laser A only, every scan frame ``A`` by default);
+    * ``image_format`` png | jpeg | tiff | bmp (``jpeg_quality``; jpeg and bmp 8-bit only);
+    * ``colour`` red | green | blue: a colour (Bayer) sensor whose laser shows mainly in that
+      channel (its wavelength moved into the channel's band if outside), rig.yaml
+      ``sensor.channel``; None or ``none``: grey;
+    * ``laser_always_on``: laser-plane poses as ``<pose>_laser.*`` only, taken in room light
+      (half the board views') with the laser on; camera and hand-eye views unchanged;
+    * ``parts``: which of camera, lasers, handeye, scans to write (default all);
+      ``calibration_only`` drops scans (no ``scans:`` in rig.yaml);
+    * ``arm_noise_scale``: the arm's reported-pose noise times this (position and rotation).
     """
-    rig = _resolve(preset)
+    rig = _resolve(preset, int(seed))
     if board is not None:
         rig = dataclasses.replace(rig, board=dataclasses.replace(rig.board, board=board))
     out = Path(out)
-    pattern = list(pattern) if pattern else list(rig.pattern)
-    bad = [s for s in pattern if s not in LASER_STATES]
+    if lasers is not None:
+        lasers = tuple(lasers)
+        if lasers not in (("A",), ("A", "B")):
+            raise CrosslineError(f"lasers {list(lasers)}: expected [A] (a one-line rig) or [A, B]")
+        rig = dataclasses.replace(rig, lasers={k: rig.lasers[k] for k in lasers})
+    rig_lasers = tuple(rig.lasers)
+    states = _states_of(rig_lasers)
+    if pattern:
+        pattern = list(pattern)
+    elif rig_lasers == ("A",):
+        pattern = ["A"]
+    else:
+        pattern = list(rig.pattern)
+    bad = [s for s in pattern if s not in states]
     if bad or not pattern:
-        raise CrosslineError(f"laser pattern {pattern}: states must be among {LASER_STATES}")
+        raise CrosslineError(f"laser pattern {pattern}: states must be among {states}")
+    if image_format not in IMAGE_FORMATS:
+        raise CrosslineError(f"image format {image_format!r}: expected one of {sorted(IMAGE_FORMATS)}")
+    if not 1 <= int(jpeg_quality) <= 100:
+        raise CrosslineError(f"JPEG quality must be 1..100, got {jpeg_quality}")
+    if image_format in EIGHT_BIT_ONLY and bit_depth is None and data_bits is None:
+        bit_depth = data_bits = 8  # a JPEG or BMP camera writes 8-bit data
+    if data_bits is not None and bit_depth is None:
+        bit_depth = 8 if int(data_bits) == 8 else 16
     bits = int(bit_depth or rig.sensor.bit_depth)
     if bits not in (8, 16):
         raise CrosslineError(f"bit depth must be 8 or 16, got {bits}")
+    dbits = int(data_bits or min(rig.sensor.data_bits or bits, bits))
+    if dbits not in (8, 10, 12, 14, 16) or dbits > bits:
+        raise CrosslineError(f"data bits must be 8, 10, 12, 14 or 16 and at most the bit depth "
+                             f"({bits}), got {dbits}")
+    if image_format in EIGHT_BIT_ONLY and bits != 8:
+        raise CrosslineError(f"{image_format} images hold 8-bit data only; this capture is "
+                             f"{bits}-bit (give bit_depth 8)")
+    if colour in (None, "none", "grey"):
+        colour = None
+    elif colour not in CHANNELS:
+        raise CrosslineError(f"colour {colour!r}: expected one of {list(CHANNELS)} or none")
+    else:
+        rig = dataclasses.replace(rig, lasers={
+            k: dataclasses.replace(v, wavelength_nm=laser_wavelength(colour, v.wavelength_nm))
+            for k, v in rig.lasers.items()})
+    if not arm_noise_scale >= 0:
+        raise CrosslineError(f"arm noise scale must be >= 0, got {arm_noise_scale}")
+    if arm_noise_scale != 1.0:
+        a = rig.arm
+        rig = dataclasses.replace(rig, arm=dataclasses.replace(
+            a, precision_mm=a.precision_mm * arm_noise_scale,
+            rot_sigma_rad=a.rot_sigma_rad * arm_noise_scale))
+    parts = tuple(PARTS if parts is None else parts)
+    unknown = sorted(set(parts) - set(PARTS))
+    if unknown or not parts:
+        raise CrosslineError(f"parts {list(parts)}: expected some of {list(PARTS)}")
+    if calibration_only:
+        parts = tuple(p for p in parts if p != "scans")
+    parts = tuple(p for p in PARTS if p in parts)
     names = [s.name for s in rig.scans]
     wanted = list(scans) if scans else names
     unknown = [s for s in wanted if s not in names]
     if unknown:
         raise CrosslineError(f"unknown scan(s) {unknown} for preset {rig.name}; known: {names}")
+    if "scans" not in parts:
+        wanted = []
     if frames is not None and frames < 1:
         raise CrosslineError(f"frames must be >= 1, got {frames}")
+    output = Output(data_bits=None if dbits == bits else dbits, ext=IMAGE_FORMATS[image_format],
+                    jpeg_quality=int(jpeg_quality), colour=colour, always_on=bool(laser_always_on))
+    options = {"parts": list(parts), "image_format": image_format, "colour": colour,
+               "laser_always_on": bool(laser_always_on), "arm_noise_scale": float(arm_noise_scale),
+               "lasers": list(rig_lasers), "data_bits": dbits}
+    if image_format == "jpeg":
+        options["jpeg_quality"] = int(jpeg_quality)
+    notes = ([f"laser {rig_lasers[0]} only"] if len(rig_lasers) == 1 else []) + (
+        [f"colour sensor, {colour} laser"] if colour else []) + (
+        ["laser always on"] if laser_always_on else []) + (
+        [f"arm noise x{arm_noise_scale:g}"] if arm_noise_scale != 1.0 else [])
+    if notes:
+        rig = dataclasses.replace(rig, description=f"{rig.description}; {', '.join(notes)}")
     if out.exists():
         if not out.is_dir():
             raise CrosslineError(f"{out}: exists and is not a folder")
@@ -282,7 +423,8 @@ def simulate(
         shutil.rmtree(partial)
     partial.mkdir(parents=True)
     try:
-        _render_all(rig, partial, int(seed), quick, frames, pattern, bits, wanted, threads, progress)
+        _render_all(rig, partial, int(seed), quick, frames, pattern, bits, wanted, threads, progress,
+                    output, parts, options)
         if out.exists():
             shutil.rmtree(out)
         os.rename(partial, out)
@@ -304,7 +446,8 @@ def _frame_table(frame: int, laser: str, rows: dict):
 
 def _render_all(rig: RigPreset, root: Path, seed: int, quick: bool, frames: int | None,
                 pattern: list[str], bits: int, scan_names: list[str], threads: int,
-                progress: bool) -> None:
+                progress: bool, output: Output = Output(), parts: tuple[str, ...] = PARTS,
+                options: dict | None = None) -> None:
     import pandas as pd
 
     from crossline.camera import Camera
@@ -312,37 +455,44 @@ def _render_all(rig: RigPreset, root: Path, seed: int, quick: bool, frames: int 
     cal = rig.quick_calibration if quick else rig.calibration
     s = rig.sensor
     cam = Camera(np.array(s.K), np.array(s.dist), (s.width, s.height))
-    plan = Plan(rig, seed, bits, root)
-    truth_cal: dict[str, Any] = {"camera": {}, "laser_A": {}, "laser_B": {}, "handeye": {}}
+    plan = Plan(rig, seed, bits, root, out=output)
+    ext = output.ext
+    truth_cal: dict[str, Any] = {"camera": {}, **{f"laser_{k}": {} for k in rig.lasers},
+                                 "handeye": {}}
 
     # camera views
-    for i, T in enumerate(views_mod.camera_views(cam, rig.board, cal, cal.camera_views)):
-        rel = f"calibration/camera/view_{i:02d}.png"
-        plan.jobs.append(("camera", i, T, rel))
-        truth_cal["camera"][f"view_{i:02d}.png"] = {"T_cam_board": T}
+    if "camera" in parts:
+        for i, T in enumerate(views_mod.camera_views(cam, rig.board, cal, cal.camera_views)):
+            rel = f"calibration/camera/view_{i:02d}{ext}"
+            plan.jobs.append(("camera", i, T, rel))
+            truth_cal["camera"][f"view_{i:02d}{ext}"] = {"T_cam_board": T}
     # laser views
     for li, laser in enumerate(("A", "B")):
+        if "lasers" not in parts or laser not in rig.lasers:
+            continue
         vs = views_mod.laser_views(cam, rig.board, rig.lasers[laser], cal.laser_depths_mm,
                                    cal.laser_poses, phase=0.7 * li)
         for i, T in enumerate(vs):
             pose = f"pose_{i:02d}"
-            plan.jobs.append(("laser", laser, i, T, f"calibration/laser_{laser}/{pose}_board.png",
-                              f"calibration/laser_{laser}/{pose}_laser.png"))
+            board_rel = None if output.always_on else f"calibration/laser_{laser}/{pose}_board{ext}"
+            plan.jobs.append(("laser", laser, i, T, board_rel,
+                              f"calibration/laser_{laser}/{pose}_laser{ext}"))
             truth_cal[f"laser_{laser}"][pose] = {"T_cam_board": T}
     # hand-eye views
-    he = views_mod.handeye_views(cam, rig, cal.handeye_views, cal.handeye_distance_mm)
     X = rig.T_tool_cam
-    T_tool_true = np.array([arm_mod.tool_from_cam(T, X) for T in he])
-    T_tool_rep, dp, dth = arm_mod.noise_calibration(T_tool_true, rig.arm, _rng(seed, 90))
     he_rows = []
-    for i, T in enumerate(he):
-        name = f"pose_{i:02d}.png"
-        plan.jobs.append(("handeye", i, invert_transform(T), f"calibration/handeye/{name}"))
-        he_rows.append([name, *_pose_row(T_tool_rep[i])])
-        truth_cal["handeye"][name] = {
-            "T_base_tool": T_tool_true[i], "T_cam_board": invert_transform(T) @ rig.T_base_board,
-            "error_position_mm": dp[i], "error_rotation_rad": dth[i],
-        }
+    if "handeye" in parts:
+        he = views_mod.handeye_views(cam, rig, cal.handeye_views, cal.handeye_distance_mm)
+        T_tool_true = np.array([arm_mod.tool_from_cam(T, X) for T in he])
+        T_tool_rep, dp, dth = arm_mod.noise_calibration(T_tool_true, rig.arm, _rng(seed, 90))
+        for i, T in enumerate(he):
+            name = f"pose_{i:02d}{ext}"
+            plan.jobs.append(("handeye", i, invert_transform(T), f"calibration/handeye/{name}"))
+            he_rows.append([name, *_pose_row(T_tool_rep[i])])
+            truth_cal["handeye"][name] = {
+                "T_base_tool": T_tool_true[i], "T_cam_board": invert_transform(T) @ rig.T_base_board,
+                "error_position_mm": dp[i], "error_rotation_rad": dth[i],
+            }
 
     # scans
     scan_truth: dict[str, Any] = {}
@@ -393,8 +543,8 @@ def _render_all(rig: RigPreset, root: Path, seed: int, quick: bool, frames: int 
         scan_stats[spec.name] = []
 
     # render
-    n_images = sum(1 if j[0] in ("camera", "handeye") else 2 if j[0] == "laser" else len(j[3])
-                   for j in plan.jobs)
+    n_images = sum(1 if j[0] in ("camera", "handeye") else len(j[3]) if j[0] == "scan"
+                   else 1 if j[4] is None else 2 for j in plan.jobs)
     order = sorted(range(len(plan.jobs)), key=lambda k: (plan.jobs[k][0] == "scan", k))
     jobs = [plan.jobs[k] for k in order]
     from tqdm import tqdm
@@ -418,7 +568,7 @@ def _render_all(rig: RigPreset, root: Path, seed: int, quick: bool, frames: int 
         else:
             import multiprocessing as mp
 
-            light = Plan(plan.preset, plan.seed, plan.bits, plan.root)  # without the job list
+            light = Plan(plan.preset, plan.seed, plan.bits, plan.root, out=plan.out)  # no job list
             # forkserver, not fork: forking a process that already runs threads (BLAS, numba,
             # a test runner's) can deadlock the child; the server is a fresh interpreter
             ctx = mp.get_context("forkserver")
@@ -430,9 +580,10 @@ def _render_all(rig: RigPreset, root: Path, seed: int, quick: bool, frames: int 
                     take(f.result())
 
     # tables
-    (root / "calibration" / "handeye").mkdir(parents=True, exist_ok=True)
-    _write_csv(root / "calibration" / "handeye" / "poses.csv",
-               ["image", "x", "y", "z", "qw", "qx", "qy", "qz"], he_rows)
+    if "handeye" in parts:
+        (root / "calibration" / "handeye").mkdir(parents=True, exist_ok=True)
+        _write_csv(root / "calibration" / "handeye" / "poses.csv",
+                   ["image", "x", "y", "z", "qw", "qx", "qy", "qz"], he_rows)
     truth_dir = root / "truth"
     for name in frame_rows:
         _write_csv(root / "scans" / name / "frames.csv",
@@ -463,9 +614,19 @@ def _render_all(rig: RigPreset, root: Path, seed: int, quick: bool, frames: int 
             write_ply(truth_dir / "part.ply", V, F)
             scan_truth[name]["mesh_triangles"] = len(F)
 
-    truth = _truth_json(rig, seed, quick, bits, pattern, truth_cal, scan_truth)
+    truth = _truth_json(rig, seed, quick, bits, pattern, truth_cal, scan_truth, output)
+    defaults = {"parts": list(PARTS), "image_format": "png", "colour": None,
+                "laser_always_on": False, "arm_noise_scale": 1.0, "lasers": ["A", "B"],
+                "data_bits": bits}
+    if options is not None and (options != defaults or rig.draw is not None):
+        truth["capture_options"] = options
+        if output.always_on:
+            truth["capture_options"]["always_on_ambient_e_white"] = (
+                ALWAYS_ON_AMBIENT * rig.ambient_board_e)
+    if rig.draw is not None:
+        truth["rig_draw"] = rig.draw
     write_json(root / "truth.json", truth)
-    _write_rig_yaml(root / "rig.yaml", rig, bits, scan_names)
+    _write_rig_yaml(root / "rig.yaml", rig, bits, scan_names, output, "scans" in parts)
 
 
 def _write_csv(path: Path, header: list[str], rows: list[list[str]]) -> None:
@@ -475,11 +636,32 @@ def _write_csv(path: Path, header: list[str], rows: list[list[str]]) -> None:
 
 
 def _truth_json(rig: RigPreset, seed: int, quick: bool, bits: int, pattern: list[str],
-                truth_cal: dict, scan_truth: dict) -> dict:
+                truth_cal: dict, scan_truth: dict, output: Output = Output()) -> dict:
     from crossline.sim.sheet import LaserSheet
 
     s = rig.sensor
     b = rig.board
+    dbits = output.data_bits or bits
+    sensor = {
+        "bit_depth": bits, "full_well_e": s.full_well_e,
+        "gain_e_per_dn": s.gain_e_per_dn(dbits), "read_noise_e": s.read_noise_e,
+        "black_level_dn": s.black_dn(dbits), "prnu": s.prnu, "psf_sigma_px": s.psf_sigma_px,
+        "shot_noise": "Poisson below 30 e-, Gaussian sqrt(e) above",
+        "vignetting": "cos^4 of the field angle",
+        "scan_window": list(s.scan_window), "frame_rate": s.frame_rate,
+    }
+    if output.data_bits is not None:
+        sensor["data_bits"] = dbits
+    if output.colour is not None:
+        from crossline.sim.colour import AMBIENT_GAINS
+
+        sensor["colour"] = {
+            "mosaic": "RGGB Bayer, red at even rows and columns of the full sensor; demosaiced "
+                      "bilinearly (OpenCV)",
+            "channel": output.colour, "ambient_gains_rgb": list(AMBIENT_GAINS),
+            "laser_gains_rgb": {k: ColourSensor(output.colour, {k: v.wavelength_nm}).laser[k].tolist()
+                                for k, v in rig.lasers.items()},
+        }
     return {
         "format": "crossline-truth/1",
         "simulated": True,
@@ -494,14 +676,7 @@ def _truth_json(rig: RigPreset, seed: int, quick: bool, bits: int, pattern: list
         "board": {**b.board.to_dict(), "light_albedo": b.light_albedo, "dark_albedo": b.dark_albedo,
                   "plate_rect_mm": list(b.plate_rect()), "thickness_mm": b.thickness_mm,
                   "background_albedo": b.background_albedo},
-        "sensor": {
-            "bit_depth": bits, "full_well_e": s.full_well_e,
-            "gain_e_per_dn": s.gain_e_per_dn(bits), "read_noise_e": s.read_noise_e,
-            "black_level_dn": s.black_dn(bits), "prnu": s.prnu, "psf_sigma_px": s.psf_sigma_px,
-            "shot_noise": "Poisson below 30 e-, Gaussian sqrt(e) above",
-            "vignetting": "cos^4 of the field angle",
-            "scan_window": list(s.scan_window), "frame_rate": s.frame_rate,
-        },
+        "sensor": sensor,
         "lighting": {"board_views_e_white": rig.ambient_board_e,
                      "scan_exposure_e_white": rig.ambient_scan_e,
                      "model": "e = e_white * albedo * (0.6 + 0.4 max(0, N.up)) * (1 + grad.(P-ref)) "
@@ -513,7 +688,8 @@ def _truth_json(rig: RigPreset, seed: int, quick: bool, bits: int, pattern: list
     }
 
 
-def _write_rig_yaml(path: Path, rig: RigPreset, bits: int, scan_names: list[str]) -> None:
+def _write_rig_yaml(path: Path, rig: RigPreset, bits: int, scan_names: list[str],
+                    output: Output = Output(), with_scans: bool = True) -> None:
     s = rig.sensor
     x, y, w, h = s.scan_window
     scans = {}
@@ -526,17 +702,27 @@ def _write_rig_yaml(path: Path, rig: RigPreset, bits: int, scan_names: list[str]
         if spec.artefact == "sphere":
             entry["diameter"] = float(spec.params["diameter"])
         scans[spec.name] = entry
-    data = {
+    sensor: dict[str, Any] = {"width": s.width, "height": s.height, "bit_depth": bits}
+    if output.data_bits is not None:
+        sensor["data_bits"] = output.data_bits
+    if output.colour is not None:
+        sensor["channel"] = output.colour
+    data: dict[str, Any] = {
         "format": "crossline-capture/1",
         "description": f"simulated: {rig.description}",
         "capture_date": rig.capture_date,
         "simulated": True,
-        "sensor": {"width": s.width, "height": s.height, "bit_depth": bits},
+        "sensor": sensor,
+    }
+    if tuple(rig.lasers) != ("A", "B"):
+        data["lasers"] = list(rig.lasers)
+    data.update({
         "scan_window": {"x": x, "y": y, "width": w, "height": h},
         "frame_rate": float(s.frame_rate),
         "board": rig.board.board.to_dict(),
-        "scans": scans,
-    }
+    })
+    if with_scans:
+        data["scans"] = scans
     text = yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=100)
     with atomic_path(path) as tmp:
         tmp.write_text(text)

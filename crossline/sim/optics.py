@@ -16,8 +16,9 @@ blur (Gaussian, sigma ``psf_sigma_px``, lens and pixel crosstalk), photo-respons
 non-uniformity (a fixed per-pixel gain map), shot noise (Poisson; the Gaussian limit above 30
 electrons, where the two differ by far less than the read noise), full-well clipping, read
 noise (Gaussian, electrons), conversion to DN with the black level, rounding and clipping to
-the bit depth. The image is worked through in bands of rows that fit the CPU cache; the
-arithmetic and the draws are those of one pass over the whole image.
+the ADC's data bits (``data_bits``: a 12-bit camera writes 0..4095 into 16-bit images). The
+image is worked through in bands of rows that fit the CPU cache; the arithmetic and the
+draws are those of one pass over the whole image.
 
 Random draws. Every Gaussian of the sensor model, the speckle and the PRNU map comes from
 ``standard_normal_f32``: the Box-Muller transform of the generator's 64-bit words (two 32-bit
@@ -255,12 +256,15 @@ def speckle_field(rng: np.random.Generator, mask: np.ndarray, contrast: float,
 class SensorModel:
     """Electrons to digital numbers: PSF, PRNU, shot and read noise, clipping, quantisation."""
 
-    def __init__(self, spec, bit_depth: int, prnu_map: np.ndarray | None):
+    def __init__(self, spec, bit_depth: int, prnu_map: np.ndarray | None,
+                 data_bits: int | None = None):
         self.spec = spec
-        self.bits = bit_depth
-        self.gain = spec.gain_e_per_dn(bit_depth)
-        self.black = spec.black_dn(bit_depth)
-        self.top = 2**bit_depth - 1
+        self.bits = bit_depth  # the container (8 or 16)
+        # the ADC's range: a 12-bit camera writes 0..4095 into its 16-bit images
+        self.data_bits = int(data_bits or bit_depth)
+        self.gain = spec.gain_e_per_dn(self.data_bits)
+        self.black = spec.black_dn(self.data_bits)
+        self.top = 2**self.data_bits - 1
         self.prnu_map = prnu_map  # full-sensor map, or None
 
     def blur(self, img: np.ndarray) -> np.ndarray:

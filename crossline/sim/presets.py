@@ -5,7 +5,7 @@ matrix, board, 80 frames/s, an arm of 0.02 mm precision); ``PRESETS["compact"]``
 different rig (another camera with stronger barrel distortion and an off-centre principal
 point, a 100 mm working distance, other laser planes and wavelength, an asymmetric grid of
 light circles, another hand-eye matrix, a less precise arm) so that nothing downstream can be
-tuned to one rig.
+tuned to one rig. ``crossline.sim.random_rig`` draws any number of others from a seed.
 
 Radiometry is expressed in electrons collected by one pixel during one exposure:
 
@@ -57,6 +57,7 @@ class SensorSpec:
     psf_sigma_px: float = 0.6  # Gaussian PSF (lens + pixel crosstalk), px
     pixel_pitch_um: float = 2.4  # for the record (speckle grain, f-number)
     f_number: float = 8.0
+    data_bits: int | None = None  # the ADC's bits inside the container (None: bit_depth)
 
     def gain_e_per_dn(self, bit_depth: int | None = None) -> float:
         """Conversion gain: full well reaches the top code above the black level."""
@@ -65,9 +66,9 @@ class SensorSpec:
         return self.full_well_e / (top - self.black_dn(bits))
 
     def black_dn(self, bit_depth: int | None = None) -> float:
-        """Black level (DN) at a bit depth."""
+        """Black level (DN) at a bit depth (``black_level_dn`` is at 8 bit: x 257 at 16)."""
         bits = self.bit_depth if bit_depth is None else bit_depth
-        return self.black_level_dn * (257.0 if bits == 16 else 1.0)
+        return self.black_level_dn * ((2**bits - 1) / 255.0)
 
 
 @dataclass(frozen=True)
@@ -197,6 +198,7 @@ class ScanSpec:
     sweep_offset_mm: tuple[float, float] = (0.0, 0.0)  # aim point shift: along, across sweep
     wobble_deg: float = 1.5  # slow hand rotation amplitude over the sweep
     frames: int = 300
+    roll_deg: float = 0.0  # camera roll about its axis: the sweep runs at -roll in the image
 
 
 @dataclass(frozen=True)
@@ -237,6 +239,7 @@ class RigPreset:
         camera_views=8, laser_poses=3, handeye_views=8,
         laser_depths_mm=(136.0, 155.0, 172.0),
     )
+    draw: dict | None = None  # a random rig's drawn quantities (crossline.sim.random_rig)
 
 
 def _T(rotvec_deg=(0.0, 0.0, 0.0), t=(0.0, 0.0, 0.0)) -> np.ndarray:

@@ -92,18 +92,21 @@ def vignetting(xy: np.ndarray) -> np.ndarray:
 class RigModel:
     """The rig's camera, lasers and sensor, with per-process caches of rays."""
 
-    def __init__(self, preset, bit_depth: int | None = None, seed: int = 0):
+    def __init__(self, preset, bit_depth: int | None = None, seed: int = 0,
+                 data_bits: int | None = None):
         self.preset = preset
         s = preset.sensor
         self.camera = Camera(np.array(s.K), np.array(s.dist), (s.width, s.height))
         self.bits = int(bit_depth or s.bit_depth)
+        # the ADC's bits inside the container: the rig's (or the container's), at most the container's
+        self.data_bits = min(int(data_bits or s.data_bits or self.bits), self.bits)
         self.lasers = {k: LaserSheet(k, v) for k, v in preset.lasers.items()}
         self.sensor_window = (0, 0, s.width, s.height)
         self.scan_window = tuple(int(v) for v in s.scan_window)
         rng = np.random.default_rng([int(seed), 1001])
         prnu = standard_normal_f32(rng, s.height * s.width).reshape(s.height, s.width)
         self.prnu = (1.0 + np.float32(s.prnu) * prnu).astype(np.float32)
-        self.sensor = SensorModel(s, self.bits, self.prnu)
+        self.sensor = SensorModel(s, self.bits, self.prnu, self.data_bits)
         self._tables: dict = {}
         self._coarse: dict = {}
         self._bounds: dict = {}
@@ -917,13 +920,19 @@ def _nonzero(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def render_image(model: RigModel, scene: Scene, light: Light, window, lasers: tuple[str, ...],
                  rng: np.random.Generator, ambient: str = "coarse", noise: bool = True,
-                 speckle: bool = True, truth: bool = True):
-    """One image: DN array, true centreline rows per laser, and render statistics."""
+                 speckle: bool = True, truth: bool = True, colour=None):
+    """One image: DN array, true centreline rows per laser, and render statistics.
+
+    ``colour`` (a ``crossline.sim.colour.ColourSensor``): the image is a Bayer mosaic,
+    digitised and demosaiced into (h, w, 3) red, green, blue.
+    """
     if ambient == "full":
         amb = render_ambient_full(model, scene, light, window)
     else:
         amb = render_ambient_coarse(model, scene, light, window)
     img = model.sensor.blur(amb)
+    if colour is not None:
+        img *= colour.ambient_gain(window)
     sheets = [model.lasers[k] for k in lasers]
     rows_by_laser = {}
     stats = {}
@@ -947,6 +956,10 @@ def render_image(model: RigModel, scene: Scene, light: Light, window, lasers: tu
                 if speckle and sh.spec.speckle_contrast > 0:
                     sub *= speckle_field(rng, sub_mask, sh.spec.speckle_contrast,
                                          sh.spec.speckle_grain_px)
+                if colour is not None:
+                    sub *= colour.laser_gain(sh.name, window, slice(y0, y1), slice(x0, x1))
                 img[y0:y1, x0:x1] += sub
     dn = model.sensor.digitise(img, rng, window, noise=noise)
+    if colour is not None:
+        dn = colour.demosaic(dn, window)
     return dn, rows_by_laser, stats
