@@ -315,12 +315,8 @@ def _extract_stripes(p: argparse.ArgumentParser) -> None:
     p.add_argument("--extractor", choices=("grey_centre", "gaussian", "steger"), default="gaussian",
                    help="gaussian (default): weighted least-squares Gaussian profile, speckle-aware; "
                         "grey_centre: the paper's eq. 9; steger: Hessian ridge detector")
-    p.add_argument("--threshold", type=float, default=0.10,
-                   help="a stripe's run: pixels above the background by this fraction of the "
-                        "frame's stripe peak, and by 6 noise sigmas at least (default 0.10)")
-    p.add_argument("--min-peak", type=float, default=0.17,
-                   help="drop runs whose brightest pixel stands less than this fraction of the "
-                        "frame's stripe peak above the background (default 0.17)")
+    p.add_argument("--threshold", type=float, default=0.15,
+                   help="stripe threshold as a fraction of full scale (default 0.15)")
     p.add_argument("--min-width", type=float, default=2.0, help="narrowest stripe, px")
     p.add_argument("--max-width", type=float, default=30.0, help="widest stripe, px")
     p.add_argument("--sigma", type=float, default=2.0, help="Steger's Gaussian sigma, px")
@@ -351,7 +347,7 @@ def _extract_stripes(p: argparse.ArgumentParser) -> None:
             min_width=a.min_width, max_width=a.max_width, sigma=a.sigma, chunk=(i, n),
             threads=a.threads, pad=a.pad, fit_pad=a.fit_pad,
             relative_noise=a.relative_noise, fit_across=a.fit_across,
-            decoder=a.decoder, min_peak=a.min_peak,
+            decoder=a.decoder,
         )
         return 0
 
@@ -550,41 +546,6 @@ def _report(p: argparse.ArgumentParser) -> None:
 
         config = a.config_file if a.config_file is not None else a.config
         run_report(a.capture, a.interim, a.processed, a.pdf, a.metrics, config=config)
-        return 0
-
-    p.set_defaults(func=run)
-
-
-@command(
-    "certificate",
-    "calibration certificate (PDF) and calibration.json of a capture's calibrations",
-    """
-    Every calibration the capture allowed, checked against the certificate's limits: camera
-    parameters with their 1 sigma, per-view residuals, the residual field and the sensor's
-    coverage by board points; each laser plane with its residuals per board pose; the
-    hand-eye X with its consistency; PASS/FAIL. Needs the camera; lasers and hand-eye are
-    shown when given. Deterministic PDF.
-    """,
-)
-def _certificate(p: argparse.ArgumentParser) -> None:
-    p.add_argument("capture", type=Path, help="capture folder")
-    p.add_argument("--summary", type=Path, help="the capture's check.json (which stages it allows)")
-    p.add_argument("--camera", type=Path, required=True, help="camera.json")
-    p.add_argument("--lasers", type=Path, help="lasers.json, if the capture has laser views")
-    p.add_argument("--handeye", type=Path, help="handeye.json, if the capture has hand-eye views")
-    cfg = p.add_mutually_exclusive_group()
-    cfg.add_argument("--config-json", dest="config", metavar="JSON",
-                     help="JSON text of the parameters with the limits under 'certificate'")
-    cfg.add_argument("--config", dest="config_file", type=Path, help="the same from a JSON file")
-    p.add_argument("--pdf", type=Path, required=True, help="calibration.pdf to write")
-    p.add_argument("--json", type=Path, required=True, help="calibration.json to write")
-
-    def run(a: argparse.Namespace) -> int:
-        from crossline.report.certificate import run_certificate
-
-        config = a.config_file if a.config_file is not None else a.config
-        run_certificate(a.capture, a.pdf, a.json, summary=a.summary, camera=a.camera,
-                        lasers=a.lasers, handeye=a.handeye, config=config)
         return 0
 
     p.set_defaults(func=run)
