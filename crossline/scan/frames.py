@@ -7,7 +7,11 @@ Two pieces:
   filters. Both release the GIL. It handles what scan frames are (grey, 8 or 16 bit, not
   interlaced) and hands anything else to ``cv2.imdecode``; it needs the optional packages
   ``numba`` and ``imagecodecs`` and falls back to OpenCV without them. Identical pixels either
-  way (PNG is lossless; the tests compare both decoders on every filter type).
+  way (PNG is lossless; the tests compare both decoders on every filter type). Each worker
+  thread reuses its inflate and row buffers from frame to frame.
+- :func:`read_frame`, one frame file to a grey array: grey PNGs by :func:`decode_png`, every
+  other format a capture may hold (TIFF, BMP, JPEG, colour PNG) by
+  :func:`crossline.io.images.read_image` with the rig's colour channel.
 - :func:`map_frames`, an ordered map over frame files with a bounded number of frames in
   flight: memory stays flat however long the scan is.
 """
@@ -16,6 +20,7 @@ from __future__ import annotations
 
 import os
 import struct
+import threading
 import zlib
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
@@ -157,9 +162,10 @@ def fast_decoder_available() -> bool:
     return _unfilter is not None and _inflate_lib is not None
 
 
-def _inflate(data: bytes, size: int) -> bytes:
+def _inflate(data: bytes, size: int, out: np.ndarray | None = None) -> bytes | np.ndarray:
+    """zlib stream to bytes (into ``out``, of ``size`` bytes, when given)."""
     if _inflate_lib is not None:
-        return _inflate_lib(data, out=size)
+        return _inflate_lib(data, out=size if out is None else out)
     return zlib.decompress(data)  # pragma: no cover - without imagecodecs
 
 
@@ -205,22 +211,38 @@ def _decode_fast(data: bytes, path: str | Path, transposed: bool = False) -> np.
     bpp = depth // 8
     stride = w * bpp
     size = h * (stride + 1)
+    bufs = _buffers(size, (h, stride))
     try:
-        raw = _inflate(b"".join(idat), size)
+        raw = _inflate(b"".join(idat), size, bufs[0])
     except Exception as exc:  # libdeflate/zlib raise their own error types
         raise ImageError(f"{path}: corrupt PNG image data ({exc})") from exc
     if len(raw) != size:
         raise ImageError(f"{path}: corrupt PNG (image data of {len(raw)} bytes, expected {size})")
-    # transposed, the rows are undone straight into the columns of a (width, height) array
-    # (the kernel writes through a transposed view): cheaper than a transpose afterwards
-    out = np.empty((stride, h) if transposed and depth == 8 else (h, stride), np.uint8)
-    rows = out.T if transposed and depth == 8 else out
-    if not _unfilter(np.frombuffer(raw, np.uint8), h, stride, bpp, rows):
+    # transposed, the rows are undone into this thread's scratch array and cv2.transpose
+    # (cache-blocked, GIL released) writes the result: cheaper than unfiltering through a
+    # transposed view, whose stores stride across the whole image
+    scratch = transposed or depth == 16  # the result is a new array made from ``out``
+    out = bufs[1] if scratch else np.empty((h, stride), np.uint8)
+    if not _unfilter(np.frombuffer(raw, np.uint8), h, stride, bpp, out):
         raise ImageError(f"{path}: corrupt PNG (unknown row filter type)")
+    if depth == 8 and transposed:
+        return cv2.transpose(out)
     if depth == 16:
         img = out.view(">u2").astype(np.uint16)
-        return np.ascontiguousarray(img.T) if transposed else img
+        return cv2.transpose(img) if transposed else img
     return out
+
+
+_local = threading.local()
+
+
+def _buffers(size: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """This thread's inflate output and row scratch arrays, reused from frame to frame
+    (fresh ones of 2 MB each would be fresh pages, faulted in on every frame)."""
+    b = getattr(_local, "bufs", None)
+    if b is None or b[0].size != size or b[1].shape != shape:
+        b = _local.bufs = (np.empty(size, np.uint8), np.empty(shape, np.uint8))
+    return b
 
 
 DECODERS = ("auto", "fast", "opencv")
@@ -249,12 +271,22 @@ def decode_png(data: bytes, path: str | Path = "<bytes>", decoder: str = "auto",
         if transposed else img
 
 
+def _as_grey(data: bytes, path: Path, channel: str | None) -> np.ndarray:
+    """Any other image (TIFF, BMP, JPEG, colour or palette PNG) as one grey channel."""
+    from crossline.io.images import read_image
+
+    return read_image(path, data=data, channel=channel)
+
+
 def read_frame(
     path: str | Path, shape: tuple[int, int] | None = None, decoder: str = "auto",
-    transposed: bool = False,
+    transposed: bool = False, channel: str | None = None,
 ) -> np.ndarray:
     """Read and decode one grey frame; ``shape`` (height, width) is checked if given.
 
+    Grey PNGs take :func:`decode_png`; every other format the capture may hold (TIFF, BMP,
+    JPEG, colour PNG) goes to :func:`crossline.io.images.read_image`, which gives the
+    ``channel`` of a colour image (the rig's ``sensor.channel``; None = its automatic choice).
     ``transposed``: return it as (width, height), see :func:`decode_png`.
     """
     path = Path(path)
@@ -262,9 +294,26 @@ def read_frame(
         data = path.read_bytes()
     except OSError as exc:
         raise ImageError(f"{path}: cannot be read ({exc.strerror})") from exc
-    img = decode_png(data, path, decoder, transposed)
-    if img.ndim != 2:
-        raise ImageError(f"{path}: expected a single-channel grey image, got shape {img.shape}")
+    img = None
+    if data.startswith(_SIGNATURE):
+        if decoder not in DECODERS:
+            raise ValueError(f"decoder must be one of {DECODERS}, got {decoder!r}")
+        if decoder != "opencv" and fast_decoder_available():
+            img = _decode_fast(data, path, transposed)
+        elif decoder == "fast":
+            raise RuntimeError("the fast PNG decoder needs the packages numba and imagecodecs")
+        else:
+            img = _decode_cv2(data, path)
+            if img.ndim != 2:
+                img = None
+            elif transposed:
+                img = cv2.transpose(img)
+    if img is None:
+        img = _as_grey(data, path, channel)
+        if img.ndim != 2:
+            raise ImageError(f"{path}: expected a single-channel grey image, got shape {img.shape}")
+        if transposed:
+            img = cv2.transpose(img)
     h, w = img.shape[::-1] if transposed else img.shape
     if shape is not None and (h, w) != tuple(shape):
         raise ImageError(f"{path}: image is {w}x{h} px, expected {shape[1]}x{shape[0]} px")
@@ -280,10 +329,12 @@ def map_frames(
     in_flight: int | None = None,
     decoder: str = "auto",
     transposed: bool = False,
+    channel: str | None = None,
 ) -> Iterator[T]:
     """Yield ``fn(i, image)`` for the i-th frame file, in order, reading each file once.
 
-    With ``transposed``, ``image`` is the frame as (width, height) (:func:`decode_png`).
+    With ``transposed``, ``image`` is the frame as (width, height) (:func:`decode_png`);
+    ``channel`` is the colour channel of colour frames (:func:`read_frame`).
 
     Reading, decoding and ``fn`` run together in ``threads`` worker threads (decoding and
     OpenCV/numpy kernels release the GIL); at most ``in_flight`` frames (default 2 per
@@ -293,7 +344,7 @@ def map_frames(
     in_flight = max(1, in_flight or 2 * threads)
 
     def work(i: int, p: str | Path) -> T:
-        return fn(i, read_frame(p, shape, decoder, transposed))
+        return fn(i, read_frame(p, shape, decoder, transposed, channel))
 
     paths = list(paths)
     if threads == 1:
