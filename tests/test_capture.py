@@ -191,6 +191,21 @@ def test_rig_not_yaml(capture: Path) -> None:
     assert "rig.yaml: not valid YAML" in problems_of(capture)
 
 
+def test_rig_yaml_alias_bomb(capture: Path) -> None:
+    """Aliases that make a small rig.yaml a huge tree: refused quickly, the message bounded."""
+    import time
+
+    lines = ["a0: &a0 [x, x, x, x, x, x, x, x, x, x]"]
+    lines += [f"a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 10) + "]" for i in range(1, 9)]
+    text = (capture / "rig.yaml").read_text()
+    text = text.replace("sensor:", "sensor: *a8\nsensr:")
+    (capture / "rig.yaml").write_text("\n".join(lines) + "\n" + text)
+    t = time.perf_counter()
+    msg = problems_of(capture)
+    assert time.perf_counter() - t < 5 and len(msg) < 5000
+    assert "'sensor' must be a mapping" in msg
+
+
 def test_read_rig_collects_all_problems(capture: Path) -> None:
     def f(d):
         d.pop("frame_rate")

@@ -20,6 +20,7 @@ import csv
 import difflib
 import math
 import re
+import reprlib
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath, PureWindowsPath
@@ -165,6 +166,16 @@ _RIG_KEYS = ("format", "sensor", "scan_window", "frame_rate", "board")
 _RIG_OPTIONAL = ("scans", "lasers", "capture_date", "description", "arm", "camera", "simulated")
 
 
+_REPR = reprlib.Repr()
+_REPR.maxstring = _REPR.maxother = 60
+_REPR.maxlevel, _REPR.maxlist, _REPR.maxdict = 3, 6, 6
+
+
+def _short(value: Any) -> str:
+    """repr of a value read from rig.yaml, bounded (aliases can make a small file a huge tree)."""
+    return _REPR.repr(value)
+
+
 def _near(key: str, known: tuple[str, ...]) -> str | None:
     match = difflib.get_close_matches(key, known, n=1, cutoff=0.75)
     return match[0] if match else None
@@ -183,7 +194,7 @@ class _RigReader:
 
     def mapping(self, data: Any, where: str, keys: tuple[str, ...], optional=()) -> dict | None:
         if not isinstance(data, dict):
-            self.bad(f"'{where}' must be a mapping with keys {list(keys)}, got {data!r}")
+            self.bad(f"'{where}' must be a mapping with keys {list(keys)}, got {_short(data)}")
             return None
         known = keys + tuple(optional)
         for k in data:
@@ -205,7 +216,7 @@ class _RigReader:
             ok = ok and float(v).is_integer()
         if not ok or not math.isfinite(float(v)):
             want = "an integer" if kind is int else "a number"
-            self.bad(f"'{where}.{key}' must be {want}, got {v!r}")
+            self.bad(f"'{where}.{key}' must be {want}, got {_short(v)}")
             return None
         v = kind(v)
         if (lo is not None and v < lo) or (hi is not None and v > hi):
@@ -215,22 +226,26 @@ class _RigReader:
         return v
 
 
-def _key_lines(text: str, depth: int = 4) -> dict[tuple[str, ...], int]:
-    """Line (1-based) of each mapping key of a YAML text, by its path of keys (first levels)."""
+def _load_yaml(text: str) -> tuple[Any, dict[tuple[str, ...], int]]:
+    """A YAML text's data (safe types only) and the line (1-based) of each mapping key of its
+    first levels, by its path of keys; one parse (libyaml's where available)."""
+    loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)(text)
+    try:
+        node = loader.get_single_node()
+        data = loader.construct_document(node) if node is not None else None
+    finally:
+        loader.dispose()
     lines: dict[tuple[str, ...], int] = {}
 
     def walk(node: Any, path: tuple[str, ...]) -> None:
-        if isinstance(node, yaml.MappingNode) and len(path) < depth:
+        if isinstance(node, yaml.MappingNode) and len(path) < 4:
             for k, v in node.value:
                 key = (*path, str(k.value))
                 lines.setdefault(key, k.start_mark.line + 1)
                 walk(v, key)
 
-    try:
-        walk(yaml.compose(text, Loader=yaml.SafeLoader), ())
-    except (yaml.YAMLError, RecursionError):
-        pass
-    return lines
+    walk(node, ())
+    return data, lines
 
 
 def _name_problem(name: str, file_only: bool = False) -> str | None:
@@ -286,8 +301,7 @@ def read_rig(path: str | Path) -> Rig:
     if why is not None:
         raise CaptureError(root, [Problem(r.file, why)])
     try:
-        text = path.read_text(encoding="utf-8")
-        data = yaml.safe_load(text)
+        data, r.lines = _load_yaml(path.read_text(encoding="utf-8"))
     except yaml.YAMLError as exc:
         raise CaptureError(root, [Problem(r.file, f"not valid YAML: {exc}")]) from exc
     except UnicodeDecodeError as exc:
@@ -296,7 +310,6 @@ def read_rig(path: str | Path) -> Rig:
         raise CaptureError(root, [Problem(r.file, "not usable YAML: nested too deeply")]) from exc
     except OSError as exc:
         raise CaptureError(root, [Problem(r.file, f"cannot be read ({exc.strerror})")]) from exc
-    r.lines = _key_lines(text)
     if not isinstance(data, dict):
         raise CaptureError(root, [Problem(r.file, "must be a mapping of keys (see DESIGN.md §2)")])
     for k in data:
@@ -308,7 +321,7 @@ def read_rig(path: str | Path) -> Rig:
         if k not in data:
             r.bad(f"missing key '{k}'")
     if "format" in data and data["format"] != FORMAT:
-        r.bad(f"'format' must be '{FORMAT}', got {data['format']!r}")
+        r.bad(f"'format' must be '{FORMAT}', got {_short(data['format'])}")
 
     sensor = window = board = None
     frame_rate = r.number(data, "rig", "frame_rate", float, lo=1e-6)
@@ -332,7 +345,7 @@ def read_rig(path: str | Path) -> Rig:
             data_bits = None
         channel = s.get("channel")
         if channel is not None and channel not in CHANNELS:
-            r.bad(f"'sensor.channel' must be one of {list(CHANNELS)}, got {channel!r}",
+            r.bad(f"'sensor.channel' must be one of {list(CHANNELS)}, got {_short(channel)}",
                   ("sensor", "channel"))
             channel = None
         if None not in (w, h, b):
@@ -343,7 +356,7 @@ def read_rig(path: str | Path) -> Rig:
         if (not isinstance(ls, list) or not ls or any(not isinstance(x, str) for x in ls)
                 or len(set(ls)) != len(ls) or not set(ls) <= set(LASERS)):
             r.bad(f"'lasers' must be a list of distinct laser names from {list(LASERS)} "
-                  f"(e.g. [A] for a single-line rig), got {ls!r}", ("lasers",))
+                  f"(e.g. [A] for a single-line rig), got {_short(ls)}", ("lasers",))
         else:
             lasers = tuple(sorted(ls))
     sw = r.mapping(data.get("scan_window", {}), "scan_window", ("x", "y", "width", "height"))
@@ -367,7 +380,7 @@ def read_rig(path: str | Path) -> Rig:
     if bd is not None and "board" in data:
         pattern = bd.get("pattern")
         if "pattern" in bd and pattern not in PATTERNS:
-            r.bad(f"'board.pattern' must be one of {list(PATTERNS)}, got {pattern!r}")
+            r.bad(f"'board.pattern' must be one of {list(PATTERNS)}, got {_short(pattern)}")
         cols = r.number(bd, "board", "cols", int, lo=2)
         rows = r.number(bd, "board", "rows", int, lo=2)
         spacing = r.number(bd, "board", "spacing", float, lo=1e-9)
@@ -378,7 +391,7 @@ def read_rig(path: str | Path) -> Rig:
                 r.bad("missing key 'board.diameter' (needed for circle grids)")
             diameter = r.number(bd, "board", "diameter", float, lo=1e-9)
             if circles not in ("dark", "light"):
-                r.bad(f"'board.circles' must be 'dark' or 'light', got {circles!r}")
+                r.bad(f"'board.circles' must be 'dark' or 'light', got {_short(circles)}")
         if None not in (cols, rows, spacing) and pattern in PATTERNS:
             try:
                 board = Board(pattern, cols, rows, spacing, diameter, circles)
@@ -388,7 +401,7 @@ def read_rig(path: str | Path) -> Rig:
     scans: dict[str, ScanSpec] = {}
     sc = data.get("scans", {})
     if "scans" in data and not isinstance(sc, dict):
-        r.bad(f"'scans' must map scan names to what they measure, got {sc!r}")
+        r.bad(f"'scans' must map scan names to what they measure, got {_short(sc)}")
         sc = {}
     for name, spec in (sc or {}).items():
         where = f"scans.{name}"
@@ -398,11 +411,11 @@ def read_rig(path: str | Path) -> Rig:
                   f"scans/<scan>", ("scans", str(name)))
             continue
         if not isinstance(spec, dict) or "artefact" not in spec:
-            r.bad(f"'{where}' must be a mapping with an 'artefact' key, got {spec!r}")
+            r.bad(f"'{where}' must be a mapping with an 'artefact' key, got {_short(spec)}")
             continue
         kind = spec["artefact"]
         if not isinstance(kind, str) or kind not in ARTEFACTS:
-            r.bad(f"'{where}.artefact' must be one of {list(ARTEFACTS)}, got {kind!r}")
+            r.bad(f"'{where}.artefact' must be one of {list(ARTEFACTS)}, got {_short(kind)}")
             continue
         mesh = None
         if "nominal" in spec:
@@ -414,7 +427,7 @@ def read_rig(path: str | Path) -> Rig:
                 mesh = None
             elif not isinstance(mesh, str):
                 r.bad(f"'{where}.nominal' must be a mesh file's path relative to the capture "
-                      f"(e.g. part.stl), got {mesh!r}", at)
+                      f"(e.g. part.stl), got {_short(mesh)}", at)
                 mesh = None
             else:
                 why = _name_problem(mesh)
@@ -425,7 +438,7 @@ def read_rig(path: str | Path) -> Rig:
                 if why is None and not (root / mesh).is_file():
                     why = "has no file in the capture"
                 if why is not None:
-                    r.bad(f"'{where}.nominal' = {mesh!r} {why}", at)
+                    r.bad(f"'{where}.nominal' = {_short(mesh)} {why}", at)
                     mesh = None
         nominal = {}
         for key in ARTEFACTS[kind]:
