@@ -40,6 +40,7 @@ import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
 
 from crossline.camera import Camera  # noqa: E402
 from crossline.io.capture import open_capture  # noqa: E402
@@ -442,6 +443,180 @@ def speeds(capture: Path, cal: tuple[Path, Path, Path], repeat: int, work: Path)
     return res
 
 
+# ----------------------------------------------------------------------------- throughput
+
+
+def _scan_of(capture: Path) -> str:
+    """The scan the throughput is measured on: the plate scan if there is one, else the first."""
+    scans = sorted(open_capture(capture).scans)
+    if not scans:
+        raise SystemExit(f"{capture}: no scans")
+    return SCAN if SCAN in scans else scans[0]
+
+
+def _timed_pool(items, fn, threads: int) -> float:
+    """Wall time of ``fn`` over ``items`` on a pool of ``threads`` threads, in order, bounded."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    t0 = time.perf_counter()
+    with ThreadPoolExecutor(threads) as pool:
+        for _ in pool.map(fn, items):
+            pass
+    return time.perf_counter() - t0
+
+
+def throughput(capture: Path, cal: tuple[Path, Path, Path], work: Path, rounds: int,
+               say) -> dict:
+    """Decode-only against the scan stages as the workflow runs them, on the same frames, in
+    one run; rounds interleave the measurements, so a load from others hits all alike.
+
+    - decode only: every frame read from disk and decoded (the stage's decoder, transposed as
+      the extractor takes it) on 2 threads, in this process (no process start);
+    - end to end: ``crossline extract-stripes`` (2 threads, 1 chunk), ``gather-stripes`` and
+      ``triangulate``, each a fresh process with config.yaml's options (bench_scale's commands);
+    - scatter/gather: the same on 1 core (``taskset -c 0``, 1 thread) and with 2 chunk jobs of
+      1 thread side by side (2 cores), as Snakemake runs ``stripes.chunks: 2``;
+    - the split: decode-only and extraction in this process on 1 thread, so extraction's share
+      (what the decoder leaves for it) is seen, and a zstd-compressed raw copy of the frames
+      decoded from memory against the PNG bytes (what a faster lossless storage buys).
+    """
+    import imagecodecs
+    from bench_scale import run_parallel, stage_commands
+
+    from crossline.scan.frames import map_frames, read_frame
+
+    scan = _scan_of(capture)
+    cap = open_capture(capture)
+    sc = cap.scans[scan]
+    paths = sc.frame_paths
+    win = cap.rig.scan_window
+    shape = (win.height, win.width)
+    n = len(paths)
+    rate = float(cap.rig.frame_rate)
+    png_mb = float(np.mean([p.stat().st_size for p in paths]) / 1e6)
+    res: dict = {"capture": str(capture), "scan": scan, "frames": n, "frame_shape": list(shape),
+                 "png_mb_mean": png_mb, "frame_rate": rate, "rounds": rounds,
+                 "fast_decoder": fast_decoder_available(), "machine": "2 cores shared with others"}
+    say(f"== throughput on {capture.name} scan {scan}: {n} frames {shape[1]}x{shape[0]}, PNG "
+        f"{png_mb:.3f} MB each (mean), rig {rate:g} frames/s; machine shared with other users")
+    read_frame(paths[0], shape, transposed=True)  # compile / load the cached kernels
+
+    def decode_only(threads: int) -> float:
+        t0 = time.perf_counter()
+        for _ in map_frames(paths, lambda i, im: None, shape=shape, threads=threads, transposed=True):
+            pass
+        return time.perf_counter() - t0
+
+    def workflow(tag: str, chunks: int, one_core: bool) -> dict:
+        root = work / f"tp-{tag}"
+        shutil.rmtree(root, ignore_errors=True)
+        interim, processed = root / "interim", root / "processed"
+        (interim / "stripes" / scan).mkdir(parents=True)
+        (interim / "points").mkdir(parents=True)
+        (interim / "calibration").mkdir(parents=True)
+        for f in cal:
+            shutil.copy(f, interim / "calibration" / f.name)
+        cmds = stage_commands(capture, interim, processed, chunks, scan)
+        pre = ["taskset", "-c", "0"] if one_core else []
+        ext = cmds["extract"]
+        if chunks > 1 or one_core:
+            ext = [[*c[:-1], "1"] for c in ext]  # 1 thread per job
+        out: dict = {}
+        if one_core:  # the jobs one after the other on one core
+            rs = [run_parallel([c], [root / f"extract{i}.log"], pre)[0] for i, c in enumerate(ext)]
+            out["extract"] = {"wall_s": sum(r["wall_s"] for r in rs), "cpu_s": sum(r["cpu_s"] for r in rs)}
+        else:
+            rs = run_parallel(ext, [root / f"extract{i}.log" for i in range(len(ext))], pre)
+            out["extract"] = {"wall_s": max(r["wall_s"] for r in rs), "cpu_s": sum(r["cpu_s"] for r in rs)}
+        for st in ("gather", "triangulate"):
+            r = run_parallel(cmds[st], [root / f"{st}.log"], pre)[0]
+            out[st] = {"wall_s": r["wall_s"], "cpu_s": r["cpu_s"]}
+        out["wall_s"] = sum(v["wall_s"] for v in out.values())
+        out["frames_per_s"] = n / out["wall_s"]
+        return out
+
+    keys = ("decode_only_s", "decode_only_1thread_s", "e2e", "one_core", "two_chunks")
+    runs: dict = {k: [] for k in keys}
+    for r in range(rounds):
+        runs["decode_only_s"].append(decode_only(2))
+        runs["e2e"].append(workflow("e2e", 1, False))
+        runs["decode_only_s"].append(decode_only(2))
+        runs["one_core"].append(workflow("1core", 1, True))
+        runs["two_chunks"].append(workflow("2chunks", 2, False))
+        runs["decode_only_1thread_s"].append(decode_only(1))
+        e = runs["e2e"][-1]
+        say(f"  round {r + 1}: decode only {n / runs['decode_only_s'][-2]:.0f} / "
+            f"{n / runs['decode_only_s'][-1]:.0f} frames/s (2 threads, before / after), end to end "
+            f"{e['frames_per_s']:.0f} frames/s (extract {e['extract']['wall_s']:.1f} s wall, "
+            f"{e['extract']['cpu_s']:.1f} s CPU; gather {e['gather']['wall_s']:.1f} s; triangulate "
+            f"{e['triangulate']['wall_s']:.1f} s); 1 core {runs['one_core'][-1]['frames_per_s']:.0f}, "
+            f"2 chunk jobs {runs['two_chunks'][-1]['frames_per_s']:.0f} frames/s")
+    res["runs"] = runs
+    dec = float(np.median(runs["decode_only_s"]))
+    e2e = runs["e2e"]
+    e_fps = float(np.median([x["frames_per_s"] for x in e2e]))
+    # each round's end to end over the mean of the decode-only runs either side of it
+    dec_either_side = [0.5 * (runs["decode_only_s"][2 * i] + runs["decode_only_s"][2 * i + 1])
+                       for i in range(len(e2e))]
+    ratios = [x["frames_per_s"] * d / n for x, d in zip(e2e, dec_either_side, strict=True)]
+    ext_wall = float(np.median([x["extract"]["wall_s"] for x in e2e]))
+    ext_cpu = float(np.median([x["extract"]["cpu_s"] for x in e2e]))
+    tri = float(np.median([x["triangulate"]["wall_s"] + x["gather"]["wall_s"] for x in e2e]))
+    one = float(np.median([x["frames_per_s"] for x in runs["one_core"]]))
+    two = float(np.median([x["frames_per_s"] for x in runs["two_chunks"]]))
+    res.update({"decode_only_frames_per_s": n / dec,
+                "decode_only_1thread_frames_per_s": n / float(np.median(runs["decode_only_1thread_s"])),
+                "end_to_end_frames_per_s": e_fps, "ratio_e2e_over_decode": float(np.median(ratios)),
+                "ratios": ratios, "extract_cpu_cores_used": ext_cpu / ext_wall,
+                "serial_tail_share": tri / float(np.median([x["wall_s"] for x in e2e])),
+                "one_core_frames_per_s": one, "two_chunks_frames_per_s": two,
+                "speedup_1_to_2_cores": two / one, "e2e_over_rig_rate": e_fps / rate})
+    # the split on one thread, in this process: decoding against extracting (+ table, write)
+    # one frame first: the compiled kernels load from numba's cache on their first call
+    run_extract_stripes(capture, scan, work / "tp-1thread.parquet", extractor="gaussian", threads=1,
+                        chunk=(0, n))
+    t0 = time.perf_counter()
+    run_extract_stripes(capture, scan, work / "tp-1thread.parquet", extractor="gaussian", threads=1)
+    ext1 = time.perf_counter() - t0
+    d1 = float(np.median(runs["decode_only_1thread_s"]))
+    res["one_thread_ms_per_frame"] = {"decode": 1e3 * d1 / n, "extract_stage": 1e3 * ext1 / n,
+                                      "extraction_beyond_decode": 1e3 * (ext1 - d1) / n}
+    res["ratio_ceiling_from_cpu_split"] = d1 / ext1
+    # a faster lossless storage: the same pixels as zstd (level 1) of the raw array, from memory
+    sample = paths[: min(n, 120)]
+    blobs = [p.read_bytes() for p in sample]
+    raws = [read_frame(p, shape) for p in sample]
+    zs = [imagecodecs.zstd_encode(np.ascontiguousarray(a).tobytes(), level=1) for a in raws]
+    png_t = _timed_pool(blobs, lambda b: decode_png(b, transposed=True), 2)
+    zst_t = _timed_pool(
+        zs, lambda z: np.frombuffer(imagecodecs.zstd_decode(z), np.uint8).reshape(shape).T.copy(), 2)
+    res["storage"] = {"frames": len(sample), "png_mb": float(np.mean([len(b) for b in blobs]) / 1e6),
+                      "zstd1_raw_mb": float(np.mean([len(z) for z in zs]) / 1e6),
+                      "png_decode_frames_per_s": len(sample) / png_t,
+                      "zstd1_decode_frames_per_s": len(sample) / zst_t}
+    st = res["storage"]
+    say(f"  decode only (read + fast PNG decode, transposed, 2 threads): "
+        f"{res['decode_only_frames_per_s']:.0f} frames/s "
+        f"({res['decode_only_1thread_frames_per_s']:.0f} on 1 thread)")
+    say(f"  end to end (extract-stripes 2 threads + gather + triangulate, processes started): {e_fps:.0f} "
+        f"frames/s = {res['ratio_e2e_over_decode']:.2f}x decode only (rounds: "
+        f"{', '.join(f'{x:.2f}' for x in ratios)}), {res['e2e_over_rig_rate']:.2f}x the rig's "
+        f"{rate:g} frames/s")
+    say(f"  extract-stripes used {res['extract_cpu_cores_used']:.2f} cores on average; gather + triangulate "
+        f"(one process, one core) are {100 * res['serial_tail_share']:.0f} % of the end-to-end wall time")
+    o = res["one_thread_ms_per_frame"]
+    say(f"  one thread, in process: decode {o['decode']:.1f} ms/frame, the extraction stage "
+        f"{o['extract_stage']:.1f} ms/frame (extraction, tables, writing beyond decoding: "
+        f"{o['extraction_beyond_decode']:.1f} ms): end to end can reach at most "
+        f"{res['ratio_ceiling_from_cpu_split']:.2f}x decode only with this extractor")
+    say(f"  scatter/gather: 1 core (taskset, 1 thread) {one:.0f} frames/s, 2 chunk jobs side by side "
+        f"{two:.0f} frames/s: {res['speedup_1_to_2_cores']:.2f}x")
+    say(f"  storage: PNG {st['png_mb']:.3f} MB decodes at {st['png_decode_frames_per_s']:.0f} frames/s, "
+        f"zstd-1 of the raw pixels {st['zstd1_raw_mb']:.3f} MB at {st['zstd1_decode_frames_per_s']:.0f} "
+        f"frames/s (2 threads, from memory, {st['frames']} frames)")
+    return res
+
+
 # ----------------------------------------------------------------------------- memory
 
 
@@ -522,6 +697,14 @@ def main(argv=None) -> int:
     ap.add_argument("--skip-memory", action="store_true")
     ap.add_argument("--no-budget", dest="budget", action="store_false",
                     help="skip the error budget (frames rendered with speckle and noise switched off)")
+    ap.add_argument("--capture", type=Path,
+                    help="measure the throughput on this capture (default: the noisy-sensor render "
+                         "of benchmarks/scan_data.py)")
+    ap.add_argument("--throughput-only", action="store_true",
+                    help="only the throughput section (no accuracy, kernels or memory)")
+    ap.add_argument("--rounds", type=int, default=3, help="throughput: interleaved rounds")
+    ap.add_argument("--sensor-frames", type=int, default=480,
+                    help="throughput: frames of the noisy-sensor render (default 480)")
     ap.add_argument("--no-patterns", dest="patterns", action="store_false",
                     help="skip the laser-pattern study (renders the plate scan with more AB frames)")
     a = ap.parse_args(argv)
@@ -536,6 +719,26 @@ def main(argv=None) -> int:
         print(s, flush=True)
         lines.append(s)
 
+    from crossline.io.atomic import write_json
+
+    if a.capture is not None:
+        tcap = a.capture.resolve()
+        tcal = (tcap / "cal" / "camera.json", tcap / "cal" / "lasers.json", tcap / "cal" / "handeye.json") \
+            if (tcap / "cal" / "camera.json").is_file() else None
+        if tcal is None and (tcap / "truth.json").is_file():
+            tcal = true_calibration(tcap, work / f"cal-{tcap.name}")
+        if tcal is None:
+            raise SystemExit(f"{tcap}: needs cal/camera.json, lasers.json, handeye.json or a truth.json")
+    else:
+        from scan_data import sensor_capture
+
+        tcap = sensor_capture(a.sensor_frames)
+        tcal = true_calibration(tcap, work / f"cal-{tcap.name}")
+    report["throughput"] = throughput(tcap, tcal, work, a.rounds, say)
+    write_json(RESULTS / "scan_throughput.json", report["throughput"])
+    (RESULTS / "scan_throughput.txt").write_text("\n".join(lines) + "\n")
+    if a.throughput_only:
+        return 0
     speed_capture, speed_cal = None, None
     for preset in [x for x in a.presets.split(",") if x]:
         say(f"== preset {preset}")
@@ -667,8 +870,6 @@ def main(argv=None) -> int:
             say(f"  {n:5d} frames: extract (gaussian, 2 threads) {m['peak_rss_extract_mb']:.0f} MB in "
                 f"{m['extract_s']:.1f} s, triangulate {m['peak_rss_triangulate_mb']:.0f} MB in "
                 f"{m['triangulate_s']:.1f} s")
-    from crossline.io.atomic import write_json
-
     write_json(RESULTS / "scan.json", report)
     (RESULTS / "scan.txt").write_text("\n".join(lines) + "\n")
     return 0
