@@ -1,4 +1,5 @@
-# crossline: capture folders -> calibrations -> stripes -> points -> clouds -> accuracy reports.
+# crossline: capture folders -> calibrations -> stripes -> points -> clouds -> reports
+# (calibration certificate, accuracy report).
 # A table of contents; the rules live in workflow/rules/, the code in the crossline package.
 # Run: snakemake --cores 2  (the default profile in profiles/default supplies the rest).
 
@@ -19,7 +20,9 @@ include: "workflow/rules/fuse.smk"
 include: "workflow/rules/report.smk"
 
 
+# Everything each listed capture allows (its check decides): the calibration certificate of
+# a capture whose camera calibrates, and the accuracy report of one whose scans can be measured.
 rule all:
     default_target: True
     input:
-        expand("reports/{capture}/accuracy.pdf", capture=config["captures"]),
+        all_targets,

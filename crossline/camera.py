@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from crossline.errors import CrosslineError
 from crossline.io.atomic import write_json
 from crossline.jit import jit
 
@@ -79,6 +80,10 @@ def _newton_undistort(xy_d, k1, k2, p1, p2, k3, tol, max_iter, out):  # pragma: 
                 break
         out[i, 0] = X
         out[i, 1] = Y
+
+
+class CameraFileError(CrosslineError, ValueError):
+    """camera.json cannot be read or holds no usable camera model (names the file)."""
 
 
 @dataclass(frozen=True)
@@ -178,6 +183,9 @@ class Camera:
         """Read ``camera.json``."""
         path = Path(path)
         try:
-            return cls.from_dict(json.loads(path.read_text()))
-        except (KeyError, ValueError) as exc:
-            raise ValueError(f"{path}: not a camera model: {exc}") from exc
+            cam = cls.from_dict(json.loads(path.read_text()))
+        except (KeyError, ValueError, TypeError) as exc:
+            raise CameraFileError(f"{path}: not a camera model: {exc}") from exc
+        if not (np.isfinite(cam.K).all() and np.isfinite(cam.dist).all()):
+            raise CameraFileError(f"{path}: the camera model has non-finite K or dist values")
+        return cam

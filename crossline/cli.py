@@ -74,6 +74,24 @@ def _board_spec(text: str):
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+def _parquet_inputs(paths: list[Path], what: str) -> None:
+    """Raise a CrosslineError naming the first of ``paths`` that is not a readable parquet file."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from crossline.errors import CrosslineError
+
+    for path in paths:
+        try:
+            pq.ParquetFile(path)
+        except OSError as exc:
+            if isinstance(exc, pa.ArrowException):
+                raise CrosslineError(f"{path}: not a {what} file (parquet: {exc})") from None
+            raise CrosslineError(f"{path}: cannot read the {what} file ({exc.strerror or exc})") from None
+        except (pa.ArrowException, ValueError) as exc:
+            raise CrosslineError(f"{path}: not a {what} file (parquet: {exc})") from None
+
+
 def _threads(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=int, default=1, help="CPU threads to use (default 1)")
 
@@ -366,6 +384,7 @@ def _gather_stripes(p: argparse.ArgumentParser) -> None:
     def run(a: argparse.Namespace) -> int:
         from crossline.scan.stripes import gather_stripes
 
+        _parquet_inputs(a.chunks, "stripe chunk")
         gather_stripes(a.chunks, a.out)
         return 0
 
@@ -551,6 +570,41 @@ def _report(p: argparse.ArgumentParser) -> None:
     p.set_defaults(func=run)
 
 
+@command(
+    "certificate",
+    "calibration certificate (PDF) and calibration.json of a capture's calibrations",
+    """
+    Every calibration the capture allowed, checked against the certificate's limits: camera
+    parameters with their 1 sigma, per-view residuals, the residual field and the sensor's
+    coverage by board points; each laser plane with its residuals per board pose; the
+    hand-eye X with its consistency; PASS/FAIL. Needs the camera; lasers and hand-eye are
+    shown when given. Deterministic PDF.
+    """,
+)
+def _certificate(p: argparse.ArgumentParser) -> None:
+    p.add_argument("capture", type=Path, help="capture folder")
+    p.add_argument("--summary", type=Path, help="the capture's check.json (which stages it allows)")
+    p.add_argument("--camera", type=Path, required=True, help="camera.json")
+    p.add_argument("--lasers", type=Path, help="lasers.json, if the capture has laser views")
+    p.add_argument("--handeye", type=Path, help="handeye.json, if the capture has hand-eye views")
+    cfg = p.add_mutually_exclusive_group()
+    cfg.add_argument("--config-json", dest="config", metavar="JSON",
+                     help="JSON text of the parameters with the limits under 'certificate'")
+    cfg.add_argument("--config", dest="config_file", type=Path, help="the same from a JSON file")
+    p.add_argument("--pdf", type=Path, required=True, help="calibration.pdf to write")
+    p.add_argument("--json", type=Path, required=True, help="calibration.json to write")
+
+    def run(a: argparse.Namespace) -> int:
+        from crossline.report.certificate import run_certificate
+
+        config = a.config_file if a.config_file is not None else a.config
+        run_certificate(a.capture, a.pdf, a.json, summary=a.summary, camera=a.camera,
+                        lasers=a.lasers, handeye=a.handeye, config=config)
+        return 0
+
+    p.set_defaults(func=run)
+
+
 # ----------------------------------------------------------------------------- main
 
 
@@ -606,6 +660,20 @@ def main(argv: list[str] | None = None) -> int:
     except CrosslineError as exc:
         print(f"crossline {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # a file the user named cannot be read or written
+        where = exc.filename if exc.filename is not None else "a file"
+        print(f"crossline {args.command}: error: {where}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"crossline {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # a bug: said in one line; the traceback only when asked for
+        if args.verbose:
+            log.exception("internal error")
+        print(f"crossline {args.command}: internal error: {type(exc).__name__}: {exc} (a bug in "
+              f"crossline, not in the input: please report it with this command line; -v shows "
+              f"where)", file=sys.stderr)
+        return 3
 
 
 if __name__ == "__main__":

@@ -235,7 +235,14 @@ def fuse_cloud(
     stats: dict[str, Any] = {"n_input": len(p), "by_laser_input": _by_laser(lab)}
     if len(p) == 0:
         raise StageError("no points to fuse")
-    if refine_prior is not None:
+    lacking = [L for L, code in (("A", 1), ("B", 2)) if not (lab == code).any()]
+    if refine_prior is not None and lacking:
+        # the refinement fits where a line A of one frame crosses a line B of another
+        stats["refine"] = {"skipped": f"no laser {' or '.join(lacking)} points: the pose "
+                                      "refinement needs stripes of both lasers to cross "
+                                      "(arm poses used as reported)"}
+        log.info("pose refinement skipped: %s", stats["refine"]["skipped"])
+    elif refine_prior is not None:
         mask = None if widths is None else usable_centres(lab, widths, crossing_max_width_ratio)
         p, stats["refine"] = _refine(p, lab, fr, points_cam, refine_prior, frame_table, threads,
                                      crossing_half_mm, crossing_min_angle_deg, mask)
@@ -544,6 +551,8 @@ def run_fuse(
         raise StageError(f"{points}: has no points; nothing to fuse")
     xyz = df[["x", "y", "z"]].to_numpy(np.float64)
     finite = np.isfinite(xyz).all(1)
+    if not finite.any():
+        raise StageError(f"{points}: none of its {len(df)} points has finite x, y, z; nothing to fuse")
     laser = df["laser"].astype(str).to_numpy() if "laser" in df else np.full(len(df), "?")
     frame = df["frame"].to_numpy(np.int64) if "frame" in df else np.zeros(len(df), np.int64)
     cam = None

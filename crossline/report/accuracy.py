@@ -317,17 +317,20 @@ def _basis(up: np.ndarray) -> np.ndarray:
 
 
 def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: Path,
-                  files: list) -> dict[str, Any]:
+                  files: list, lasers: tuple[str, ...] = ("A", "B")) -> dict[str, Any]:
     """The figures of one scan (counts, artefact, A vs B, truth) and its plot arrays."""
     from crossline.report import metrics as mt
 
     out: dict[str, Any] = {"artefact": sd.artefact, "nominal": sd.nominal,
                            "cloud_source": sd.cloud_source or None}
+    if tuple(lasers) != ("A", "B"):  # said only where it is not the two-laser rig
+        out["lasers"] = list(lasers)
     counts: dict[str, Any] = {}
     if sd.point_frames is not None:
         counts["points"] = len(sd.point_frames)
         nl = np.bincount(sd.point_lasers, minlength=3)
-        counts["points_by_laser"] = {"A": int(nl[1]), "B": int(nl[2])}
+        counts["points_by_laser"] = {L: int(nl[1 + i]) for i, L in enumerate(("A", "B"))
+                                     if L in lasers or nl[1 + i]}
         if nl[0]:
             counts["points_by_laser"]["other"] = int(nl[0])
     if sd.frame_ids is not None and sd.point_frames is not None:
@@ -344,7 +347,9 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
         if isinstance(fs.get("parameters"), dict):
             counts["fused"]["parameters"] = fs["parameters"]
         ref = fs.get("refine")
-        if isinstance(ref, dict):
+        if isinstance(ref, dict) and ref.get("skipped"):
+            counts["fused"]["pose_refinement"] = {"skipped": ref["skipped"]}
+        elif isinstance(ref, dict):
             # what the pose refinement saw and did: it changes every figure of the scan
             counts["fused"]["pose_refinement"] = {
                 k: ref[k] for k in ("crossings", "used", "frames", "frames_with_crossings",
@@ -505,8 +510,15 @@ def _viewpoints(sd: ScanData) -> np.ndarray | None:
     return centres[pos]
 
 
+ONE_LINE_NOTE = "omitted: the rig has one laser (A), so there is no laser B to compare with"
+
+
 def _ab(fn: Any, art: str, P: np.ndarray, labels: np.ndarray, out: dict, **kw: Any) -> dict | None:
-    """Laser A against laser B, or None with the reason in ``out["a_vs_b_error"]``."""
+    """Laser A against laser B, or None with the reason in ``out["a_vs_b_error"]`` (or, on a
+    one-line rig, ``out["a_vs_b_note"]``)."""
+    if out.get("lasers") == ["A"]:
+        out["a_vs_b_note"] = ONE_LINE_NOTE
+        return None
     try:
         ab = fn(art, P, labels, **kw)
     except ValueError as exc:
@@ -651,9 +663,10 @@ def _calibration(inputs: dict[str, dict | None]) -> dict[str, Any]:
             c["uncertainty"] = {k: unc[k] for k in ("sigma_px", "std", "projection_rms_px") if k in unc}
         cal["camera"] = c
     las = inputs.get("lasers")
-    if las and "A" in las and "B" in las:
+    present = [L for L in ("A", "B") if isinstance((las or {}).get(L), dict)]
+    if las and "A" in present:  # a one-line rig has plane A alone
         out: dict[str, Any] = {}
-        for L in ("A", "B"):
+        for L in present:
             pl = las[L]
             n = np.asarray(pl["normal"], dtype=np.float64)
             e = {"normal": (n / np.linalg.norm(n)).tolist(), "d_mm": float(pl["d"]) / np.linalg.norm(n)}
@@ -661,8 +674,9 @@ def _calibration(inputs: dict[str, dict | None]) -> dict[str, Any]:
                 if k not in ("normal", "d") and isinstance(v, int | float) and not isinstance(v, bool):
                     e[k] = v
             out[L] = e
-        out["angle_AB_deg"] = float(las.get("angle_AB_deg", np.degrees(angle_between(
-            np.asarray(out["A"]["normal"]), np.asarray(out["B"]["normal"])))))
+        if "B" in out:
+            out["angle_AB_deg"] = float(las.get("angle_AB_deg", np.degrees(angle_between(
+                np.asarray(out["A"]["normal"]), np.asarray(out["B"]["normal"])))))
         cal["lasers"] = out
     he = inputs.get("handeye")
     if he and "T_tool_cam" in he:
@@ -791,6 +805,9 @@ def build_report(
                     "simulated": truth is not None, "scans": sorted(rig.scans)},
         "software": {"crossline_version": __version__, "git_commit": _git_commit()},
     }
+    lasers = tuple(getattr(rig, "lasers", ("A", "B")))
+    if lasers != ("A", "B"):
+        metrics["capture"]["lasers"] = list(lasers)
     plots: dict[str, Any] = {"scans": {}}
     cal = _calibration(inputs)
     metrics["calibration"] = cal
@@ -804,7 +821,7 @@ def build_report(
     form_key = FORM_KEYS[met["sphere_form_statistic"]]
     for name in sorted(rig.scans):
         sd = _load_scan(name, rig.scans[name], capture, interim_dir, processed_dir, files)
-        s = _measure_scan(sd, tol, met, truth, capture, files)
+        s = _measure_scan(sd, tol, met, truth, capture, files, lasers)
         scans[name] = s
         plots["scans"][name] = sd.plots
         m = s.get("measurement") or {}
@@ -831,9 +848,10 @@ def build_report(
                 _check(rows, "gauge_plane_reference_std_mm",
                        "gauge height, paper's method: std", name,
                        m.get("plane_reference_std_mm"), "mm", None)
-            _check(rows, "ab_height_difference_mm", "gauge height: laser A − laser B", name,
-                   ab.get("height_mm"), "mm", tol["ab_height_difference_mm"], use_abs=True,
-                   note=err or ("" if ab else s.get("a_vs_b_error", "")))
+            if "a_vs_b_note" not in s:  # a one-line rig has no laser B to compare with
+                _check(rows, "ab_height_difference_mm", "gauge height: laser A − laser B", name,
+                       ab.get("height_mm"), "mm", tol["ab_height_difference_mm"], use_abs=True,
+                       note=err or ("" if ab else s.get("a_vs_b_error", "")))
         elif sd.artefact == "plane":
             _check(rows, "plane_within_share", f"plane: share within ±{tol['plane_band_mm']:g} mm",
                    name, m.get("share_within_band"), "%", tol["plane_within_share"],
@@ -852,8 +870,9 @@ def build_report(
                 _check(rows, "sphere_form_error_d95_mm",
                        "sphere: form error, D95 % (ISO 10360-13)", name,
                        m.get(FORM_KEYS["d95"]), "mm", None, note=err)
-            _check(rows, "ab_diameter_difference_mm", "sphere: diameter A − B", name,
-                   ab.get("diameter_mm"), "mm", None, note=err)
+            if "a_vs_b_note" not in s:
+                _check(rows, "ab_diameter_difference_mm", "sphere: diameter A − B", name,
+                       ab.get("diameter_mm"), "mm", None, note=err)
             inc = s.get("incidence") or {}
             if "size_error_steep_mm" in inc:
                 _check(rows, "sphere_size_error_steep_mm",

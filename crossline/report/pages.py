@@ -129,7 +129,8 @@ class Page:
         self.fig = Figure(figsize=A4)
         self.section = section
         cap = metrics["capture"]["name"]
-        self.fig.text(LEFT, 0.972, "crossline accuracy report", fontsize=8, color="#57606a")
+        self.fig.text(LEFT, 0.972, metrics.get("title", "crossline accuracy report"), fontsize=8,
+                      color="#57606a")
         self.fig.text(RIGHT, 0.972, f"capture {cap}", fontsize=8, color="#57606a", ha="right")
         self.fig.add_artist(matplotlib.lines.Line2D([LEFT, RIGHT], [0.966, 0.966], lw=0.6,
                                                     color="#57606a"))
@@ -317,8 +318,11 @@ def page_summary(m: dict[str, Any]) -> Figure:
         p.text("Camera: no camera.json", color=COLOURS["N/A"])
     la = cal.get("lasers")
     if la:
-        p.text(f"Laser planes: angle between A and B {fmt(la['angle_AB_deg'], '°', 3)}; RMS "
-               f"A {fmt(la['A'].get('rms_mm'), 'mm')}, B {fmt(la['B'].get('rms_mm'), 'mm')}")
+        if "B" in la:
+            p.text(f"Laser planes: angle between A and B {fmt(la['angle_AB_deg'], '°', 3)}; RMS "
+                   f"A {fmt(la['A'].get('rms_mm'), 'mm')}, B {fmt(la['B'].get('rms_mm'), 'mm')}")
+        else:
+            p.text(f"Laser plane (one-line rig): RMS A {fmt(la['A'].get('rms_mm'), 'mm')}")
     else:
         p.text("Laser planes: no lasers.json", color=COLOURS["N/A"])
     he = cal.get("handeye")
@@ -340,7 +344,8 @@ def page_summary(m: dict[str, Any]) -> Figure:
         "around the block (the paper's Fig. 10), away from the block's edges.",
         "Plane: distances to the least-squares plane (the paper's Fig. 16). Sphere: least-squares",
         "sphere (ISO 10360-8 PSize; PForm as the range of radial residuals, see the scan page).",
-        "Laser A − laser B: the same artefact measured from each laser's points alone.",
+        "Laser A − laser B: the same artefact measured from each laser's points alone"
+        + (" (a one-line rig: omitted)." if m["capture"].get("lasers") == ["A"] else "."),
         "Histograms span 0.1–99.9 % of the values (at most ±8 robust sigmas); the rest are",
         "counted in the end bins.",
         "Result: PASS when every checked figure passes; FAIL if any fails; INCOMPLETE otherwise.",
@@ -567,9 +572,10 @@ def page_lasers(m: dict[str, Any], plots: dict[str, Any]) -> Figure:
         return p.fig
     rows = []
     order = ["rms_mm", "n_used", "n_points", "n_rejected"]
-    found = {k for L in ("A", "B") for k in la[L] if k not in ("normal", "d_mm")}
+    lasers = [L for L in ("A", "B") if L in la]  # a one-line rig has A alone
+    found = {k for L in lasers for k in la[L] if k not in ("normal", "d_mm")}
     extra_keys = [k for k in order if k in found]  # the calibration's own figures only
-    for L in ("A", "B"):
+    for L in lasers:
         n = la[L]["normal"]
         rows.append([L, f"[{n[0]:+.6f}, {n[1]:+.6f}, {n[2]:+.6f}]", fmt(la[L]["d_mm"], "mm", 4)]
                     + [fmt(la[L].get(k), "", 4 if k.endswith("_mm") else 0)
@@ -577,8 +583,11 @@ def page_lasers(m: dict[str, Any], plots: dict[str, Any]) -> Figure:
     p.table(["Laser", "normal n (camera frame)", "d", *(pretty(k) for k in extra_keys[:3])], rows,
             [LEFT, LEFT + 0.06, LEFT + 0.36, LEFT + 0.49, LEFT + 0.61, LEFT + 0.73],
             aligns=["left", "left", "right", "right", "right", "right"], size=7.8)
-    p.text(f"Plane n · p + d = 0 in the camera frame (mm). Angle between the planes: "
-           f"{fmt(la['angle_AB_deg'], '°', 4)} (90° is a perfect cross).")
+    if "angle_AB_deg" in la:
+        p.text(f"Plane n · p + d = 0 in the camera frame (mm). Angle between the planes: "
+               f"{fmt(la['angle_AB_deg'], '°', 4)} (90° is a perfect cross).")
+    else:
+        p.text("Plane n · p + d = 0 in the camera frame (mm). One-line rig: laser A alone.")
     raw = plots.get("lasers_raw") or {}
     cam_raw = plots.get("camera_raw")
     rig = plots.get("rig")
@@ -594,7 +603,7 @@ def page_lasers(m: dict[str, Any], plots: dict[str, Any]) -> Figure:
             ax.add_patch(matplotlib.patches.Rectangle((sw.x, sw.y), sw.width, sw.height, fill=False,
                                                       ec="#999999", ls="--", lw=0.8,
                                                       label="scan window"))
-        for L in ("A", "B"):
+        for L in lasers:
             nrm = np.asarray(la[L]["normal"])
             d = la[L]["d_mm"]
             for z, ls in ((115.0, ":"), (150.0, "-"), (185.0, "--")):
@@ -621,11 +630,11 @@ def page_lasers(m: dict[str, Any], plots: dict[str, Any]) -> Figure:
                      loc="left")
         ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=6.5)
     # residuals: per-pose RMS or a residual histogram, whichever the file holds
-    per_pose = {L: _pose_rms(raw.get(L, {})) for L in ("A", "B")}
-    lists = {L: _numeric_lists(raw.get(L, {})) for L in ("A", "B")}
+    per_pose = {L: _pose_rms(raw.get(L, {})) for L in lasers}
+    lists = {L: _numeric_lists(raw.get(L, {})) for L in lasers}
     if any(lists.values()):
         ax = p.axes(2.4, left=LEFT + 0.06)
-        for L in ("A", "B"):
+        for L in lasers:
             for k, v in list(lists[L].items())[:1]:
                 ax.hist(v, bins=50, histtype="step", color=LASER_COLOURS[L], lw=1.2,
                         label=f"laser {L}: {k}, RMS {fmt(float(np.sqrt(np.mean(v ** 2))), 'mm')}")
@@ -636,7 +645,7 @@ def page_lasers(m: dict[str, Any], plots: dict[str, Any]) -> Figure:
     elif any(per_pose.values()):
         ax = p.axes(2.4, left=LEFT + 0.06)
         labels, x0 = [], 0
-        for L in ("A", "B"):
+        for L in lasers:
             vals = per_pose[L]
             xs = np.arange(x0, x0 + len(vals))
             ax.bar(xs, [v[1] for v in vals], color=LASER_COLOURS[L], label=f"laser {L}")
@@ -647,7 +656,7 @@ def page_lasers(m: dict[str, Any], plots: dict[str, Any]) -> Figure:
         ax.set_xticklabels(labels, rotation=60, ha="right", fontsize=6.5)
         ax.set_ylabel("RMS distance to the plane (mm)")
         ax.set_title("Residuals of the plane fits per board pose", loc="left")
-        ax.set_ylim(0, max(v[1] for L in ("A", "B") for v in per_pose[L]) * 1.3)
+        ax.set_ylim(0, max(v[1] for L in lasers for v in per_pose[L]) * 1.3)
         ax.legend(loc="upper left", ncol=2)
     else:
         p.gap(0.2)
@@ -784,7 +793,10 @@ def page_scan(m: dict[str, Any], name: str, plots: dict[str, Any]) -> Figure:
     lines = []
     if "points" in c:
         by = c.get("points_by_laser", {})
-        lines.append(f"points {fmt(c['points'])} (A {fmt(by.get('A', 0))}, B {fmt(by.get('B', 0))})")
+        if "B" in by or s.get("lasers") != ["A"]:
+            lines.append(f"points {fmt(c['points'])} (A {fmt(by.get('A', 0))}, B {fmt(by.get('B', 0))})")
+        else:
+            lines.append(f"points {fmt(c['points'])} (laser A: a one-line rig)")
     if "frames" in c:
         lines.append(f"frames {fmt(c['frames'])}")
     tri = c.get("triangulation") or {}
@@ -809,7 +821,9 @@ def page_scan(m: dict[str, Any], name: str, plots: dict[str, Any]) -> Figure:
         lines.append(f"fused cloud {fmt(fz.get('n_output'))} points "
                      f"({fmt(fz.get('n_outliers'))} outliers removed)")
         pr = fz.get("pose_refinement")
-        if pr:
+        if pr and pr.get("skipped"):
+            lines.append(f"arm poses as reported: refinement skipped ({pr['skipped']})")
+        elif pr:
             lines.append(f"arm poses refined: {fmt(pr.get('used'))} A-B crossings, "
                          f"{fmt(pr.get('frames_with_crossings'))} of {fmt(pr.get('frames'))} frames")
             lines.append(f"  crossing gaps {_um(pr.get('gap_rms_before_mm'))} -> "
@@ -918,6 +932,8 @@ def page_scan(m: dict[str, Any], name: str, plots: dict[str, Any]) -> Figure:
         elif s.get("a_vs_b_error"):
             p.text(f"Laser A against laser B: not compared ({s['a_vs_b_error']})", size=8,
                    color=COLOURS["N/A"])
+        elif s.get("a_vs_b_note"):
+            p.text(f"Laser A against laser B: {s['a_vs_b_note']}", size=8, color=COLOURS["INFO"])
     elif art == "freeform":
         p.gap(0.2)
         p.text("A freeform part has no nominal geometry here; with truth.json, its deviation "

@@ -110,6 +110,40 @@ def _load_calibration(camera_json, lasers_json) -> tuple[Camera, LaserPlanes]:
     return cam, planes
 
 
+def _check_lasers(states: np.ndarray, scan: str, rig_lasers: tuple[str, ...], planes: Any,
+                  lasers_json: str | Path) -> None:
+    """Raise :class:`StageError` if a frame lights a laser the rig or lasers.json lacks."""
+    used = sorted({x for s in set(map(str, states)) if s != "off" for x in ("A", "B") if x in s})
+    foreign = [x for x in used if x not in rig_lasers]
+    if foreign:
+        raise StageError(f"scan {scan}: frames.csv has frames lit by laser {', '.join(foreign)}, "
+                         f"but rig.yaml names the lasers {list(rig_lasers)}")
+    missing = []
+    for x in used:
+        try:
+            planes[x]
+        except (KeyError, AttributeError):
+            missing.append(x)
+    if missing:
+        raise StageError(f"{lasers_json}: has no plane for laser {', '.join(missing)}, which "
+                         f"scan {scan} uses")
+
+
+def _only_lasers(counts: dict[str, Any], lasers: tuple[str, ...]) -> dict[str, Any]:
+    """The labelling counts without the entries of lasers (and laser states) the rig lacks."""
+    keep = {*lasers, "off", *(("AB",) if len(lasers) > 1 else ())}
+    out: dict[str, Any] = {}
+    for k, v in counts.items():
+        if isinstance(v, dict) and set(v) <= {"A", "B", "AB", "off"}:
+            out[k] = {s: n for s, n in v.items() if s in keep}
+        elif k in ("labelled_in_AB", "AB_frames_without_reference") and "AB" not in keep:
+            continue
+        else:
+            out[k] = v
+    return {k: v for k, v in out.items()
+            if not (k in ("labelled_in_AB", "AB_frames_without_reference") and "AB" not in keep)}
+
+
 def run_triangulate(
     capture: str | Path,
     scan: str,
@@ -150,11 +184,18 @@ def run_triangulate(
     if scan not in cap.scans:
         raise StageError(f"capture {cap.root}: no scan {scan!r} (known: {sorted(cap.scans)})")
     sc = cap.scans[scan]
+    rig_lasers = tuple(getattr(cap.rig, "lasers", ("A", "B")))
     check_pattern(sc.lasers, scan)
     cam, planes = _load_calibration(camera_json, lasers_json)
+    _check_lasers(sc.lasers, scan, rig_lasers, planes, lasers_json)
     T_tool_cam = load_handeye(handeye_json)
     T_base_cam = sc.T_base_tool @ T_tool_cam  # each frame's camera pose, once for the scan
-    smeta = read_stripes_meta(stripes)
+    try:
+        smeta = read_stripes_meta(stripes)
+    except OSError as exc:
+        raise StageError(f"{stripes}: cannot read the stripes file ({exc.strerror or exc})") from exc
+    except (pa.ArrowException, ValueError) as exc:  # not a parquet file at all
+        raise StageError(f"{stripes}: not a stripes file ({exc})") from exc
     if smeta.get("scan") != scan or smeta.get("frame_range") != [0, len(sc.frames)]:
         raise StageError(f"{stripes}: holds scan {smeta.get('scan')!r} frames {smeta.get('frame_range')}, "
                          f"expected all {len(sc.frames)} frames of scan {scan!r}")
@@ -271,6 +312,11 @@ def run_triangulate(
             "counts": counts,
             "stripes_counts": smeta.get("counts", {}),
         }
+        if rig_lasers != ("A", "B"):  # the two-laser rig's files stay as they were
+            meta["lasers"] = list(rig_lasers)
+            meta["labelling"] = ("one-line rig: every centre is laser A's (no disambiguation)"
+                                 if rig_lasers == ("A",) else "")
+            meta["counts"] = _only_lasers(meta["counts"], rig_lasers)
         if n_points == 0:  # raised inside the block: no file is left behind
             raise StageError(f"scan {scan}: no stripe centre could be labelled A or B "
                              f"(counts: {json.dumps(counts)})")

@@ -1,14 +1,13 @@
-# Calibration: camera intrinsics, the two laser planes, and the hand-eye transform X.
+# Calibration: camera intrinsics, the rig's laser planes (A, or A and B), and the hand-eye
+# transform X. Each runs only on what the capture holds (check.json lists it).
 
 
 rule calibrate_camera:
     input:
         summary="data/interim/{capture}/check.json",
-        views="data/raw/{capture}/calibration/camera",
-        # with views: all, the lasers-off board views of the other sets count too
-        laser_a="data/raw/{capture}/calibration/laser_A",
-        laser_b="data/raw/{capture}/calibration/laser_B",
-        handeye="data/raw/{capture}/calibration/handeye",
+        # the folders that hold views: with views: all, the lasers-off board views of the
+        # laser and hand-eye sets count too (a capture may lack any of them)
+        views=camera_views_input,
         code=code("crossline.calibrate.camera"),
     output:
         camera="data/interim/{capture}/calibration/camera.json",
@@ -36,8 +35,7 @@ rule calibrate_lasers:
     input:
         summary="data/interim/{capture}/check.json",
         camera="data/interim/{capture}/calibration/camera.json",
-        views_a="data/raw/{capture}/calibration/laser_A",
-        views_b="data/raw/{capture}/calibration/laser_B",
+        views=laser_views_input,  # laser_<L>/ of each of the rig's lasers (A, or A and B)
         code=code("crossline.calibrate.lasers"),
     output:
         lasers="data/interim/{capture}/calibration/lasers.json",

@@ -3,6 +3,7 @@
 
 import json
 import re
+import sys
 from pathlib import Path
 
 from snakemake.utils import validate
@@ -51,10 +52,95 @@ def capture_input(wildcards):
     return f"data/raw/{wildcards.capture}"
 
 
+def check_summary(capture):
+    """A capture's check summary (check.json, the checkpoint's output) as a dict."""
+    summary = checkpoints.check_capture.get(capture=capture).output.summary
+    return json.loads(Path(summary).read_text())
+
+
+STAGES = ("calibrate_camera", "calibrate_lasers", "calibrate_handeye", "scans")
+
+
+def stages_of(summary):
+    """Stage -> None if the capture allows it, else why not (the summary's ``stages``)."""
+    stages = summary.get("stages")
+    if isinstance(stages, dict):
+        return {k: None if stages.get(k, {}).get("allowed") else
+                (stages.get(k, {}).get("why") or "not allowed") for k in STAGES}
+    # a summary written before the stages were listed: every stage, as then
+    return dict.fromkeys(STAGES)
+
+
 def scans_of(capture):
     """Scan names of a capture, from its check summary (a checkpoint)."""
-    summary = checkpoints.check_capture.get(capture=capture).output.summary
-    return sorted(json.loads(Path(summary).read_text())["scans"])
+    return sorted(check_summary(capture)["scans"])
+
+
+def calibration_folders(wildcards, sets):
+    """The capture's calibration folders among ``sets`` that hold views (per check.json)."""
+    views = check_summary(wildcards.capture).get("views", {})
+    return [f"data/raw/{wildcards.capture}/calibration/{k}" for k in sorted(views)
+            if views[k] and any(k == s or (s.endswith("*") and k.startswith(s[:-1])) for s in sets)]
+
+
+def camera_views_input(wildcards):
+    """The board-view folders the camera calibrates on: camera/, or with views: all, every set."""
+    sets = ["camera"] if config["camera"]["views"] == "camera" else ["camera", "laser_*", "handeye"]
+    return calibration_folders(wildcards, sets)
+
+
+def laser_views_input(wildcards):
+    """The laser_<L> folders of the rig's lasers."""
+    lasers = check_summary(wildcards.capture).get("lasers", ["A", "B"])
+    return calibration_folders(wildcards, [f"laser_{x}" for x in lasers])
+
+
+_TOLD = set()
+
+
+def capture_targets(capture):
+    """What the default target builds of a capture: what its stages allow.
+
+    Every capture gets its check; one whose camera calibrates gets the calibration
+    certificate; one whose scans can be measured also gets the accuracy report. Stages the
+    capture does not allow are said once, with the reason.
+    """
+    summary = check_summary(capture)
+    why = stages_of(summary)
+    if capture not in _TOLD:
+        _TOLD.add(capture)
+        for stage, reason in why.items():
+            if reason:
+                print(f"capture {capture}: {stage} not run: {reason}", file=sys.stderr)
+    targets = [f"data/interim/{capture}/check.json"]
+    if why["calibrate_camera"] is None:
+        targets.append(f"reports/{capture}/calibration.pdf")
+    if why["scans"] is None:
+        targets.append(f"reports/{capture}/accuracy.pdf")
+    return targets
+
+
+def all_targets(wildcards):
+    """The default target: every listed capture, as far as it allows."""
+    return [t for c in config["captures"] for t in capture_targets(c)]
+
+
+def certificate_inputs(wildcards):
+    """The calibrations a capture's certificate shows: those the capture allows."""
+    c = wildcards.capture
+    why = stages_of(check_summary(c))
+    out = {"summary": f"data/interim/{c}/check.json"}
+    for stage, name in (("calibrate_camera", "camera"), ("calibrate_lasers", "lasers"),
+                        ("calibrate_handeye", "handeye")):
+        if why[stage] is None:
+            out[name] = f"data/interim/{c}/calibration/{name}.json"
+    return out
+
+
+def certificate_args(wildcards, input):
+    """The certificate command's calibration options, for the files it is given."""
+    given = {k: getattr(input, k, None) for k in ("camera", "lasers", "handeye")}
+    return " ".join(f"--{k} {v}" for k, v in given.items() if v)
 
 
 def scan_frames_input(wildcards):
@@ -91,4 +177,10 @@ def report_inputs(wildcards):
 def report_config():
     """Every parameter of every stage plus the tolerances, as the report's provenance (JSON)."""
     keys = ("camera", "lasers", "handeye", "stripes", "points", "fuse", "report")
+    return json.dumps({k: config[k] for k in keys}, sort_keys=True)
+
+
+def certificate_config():
+    """The calibrations' parameters and the certificate's limits, as JSON (its provenance)."""
+    keys = ("camera", "lasers", "handeye", "certificate")
     return json.dumps({k: config[k] for k in keys}, sort_keys=True)
