@@ -333,8 +333,12 @@ def _extract_stripes(p: argparse.ArgumentParser) -> None:
     p.add_argument("--extractor", choices=("grey_centre", "gaussian", "steger"), default="gaussian",
                    help="gaussian (default): weighted least-squares Gaussian profile, speckle-aware; "
                         "grey_centre: the paper's eq. 9; steger: Hessian ridge detector")
-    p.add_argument("--threshold", type=float, default=0.15,
-                   help="stripe threshold as a fraction of full scale (default 0.15)")
+    p.add_argument("--threshold", type=float, default=0.10,
+                   help="a stripe's run: pixels above the background by this fraction of the "
+                        "frame's stripe peak, and by 6 noise sigmas at least (default 0.10)")
+    p.add_argument("--min-peak", type=float, default=0.17,
+                   help="drop runs whose brightest pixel stands less than this fraction of the "
+                        "frame's stripe peak above the background (default 0.17)")
     p.add_argument("--min-width", type=float, default=2.0, help="narrowest stripe, px")
     p.add_argument("--max-width", type=float, default=30.0, help="widest stripe, px")
     p.add_argument("--sigma", type=float, default=2.0, help="Steger's Gaussian sigma, px")
@@ -365,7 +369,7 @@ def _extract_stripes(p: argparse.ArgumentParser) -> None:
             min_width=a.min_width, max_width=a.max_width, sigma=a.sigma, chunk=(i, n),
             threads=a.threads, pad=a.pad, fit_pad=a.fit_pad,
             relative_noise=a.relative_noise, fit_across=a.fit_across,
-            decoder=a.decoder,
+            decoder=a.decoder, min_peak=a.min_peak,
         )
         return 0
 

@@ -8,6 +8,7 @@ import zlib
 
 import cv2
 import numpy as np
+import pyarrow.parquet as pq
 import pytest
 from scipy.special import erf
 
@@ -16,6 +17,7 @@ from crossline.scan.frames import decode_png, fast_decoder_available, map_frames
 from crossline.scan.stripes import CLOSE, EDGE, MERGED, SATURATED, gaussian, grey_centre, steger
 
 H, W = 120, 200
+LEVEL_38 = 0.15 * 255  # a threshold of 38.25 counts
 
 
 def _cdf(x, s_lo, s_hi):
@@ -117,7 +119,9 @@ def test_merged_detected_among_normal_columns():
     t2 = t.copy()
     t2[:150] += 30.0
     t2[150:] += 4.0
-    c = grey_centre(profile_image([t, t2]), threshold=0.15)
+    # at 38 counts (0.22 of this stripe's peak above its background): how far the runs of two
+    # stripes 4 px apart reach beyond them, and so whether they look merged, depends on it
+    c = grey_centre(profile_image([t, t2]), level=LEVEL_38)
     u = c["u"].astype(int)
     assert np.all((c["flags"][u < 150] & MERGED) == 0)
     assert np.all((c["flags"][u >= 150] & MERGED) != 0)
@@ -191,13 +195,14 @@ def wls_bound(mu_col, t, contrast, noise, peak, sigma, pad, threshold=0.15, bg=5
 
 def test_gaussian_reaches_the_bound_and_estimates_the_noise():
     img, t, mu = speckled_columns()
-    c, info = gaussian(img, return_info=True, across=False)
+    # the bound's window is the run above 0.15 of the 16-bit range (9830 counts)
+    c, info = gaussian(img, return_info=True, across=False, level=0.15 * 65535)
     assert c["u"].size == t.size
     rms = np.sqrt(np.mean((c["v"] - t[c["u"].astype(int)]) ** 2))
     bound = np.sqrt(np.mean([wls_bound(mu[:, k], t[k], 0.15, 20.0, 20000.0, 2.2, 6) for k in range(300)]))
     # efficient: within 10 % of the bound (measured 4 %); the paper's grey centre is far off it
     assert rms < 1.10 * bound
-    g = grey_centre(img)
+    g = grey_centre(img, level=0.15 * 65535)
     assert rms < 0.5 * np.sqrt(np.mean((g["v"] - t[g["u"].astype(int)]) ** 2))
     # the noise levels it weighted by were found in the image itself
     assert info["relative_noise"] == pytest.approx(0.15, rel=0.05)
@@ -269,7 +274,7 @@ def test_gaussian_two_close_stripes_and_merged():
     t2 = t.copy()
     t2[:150] += 30.0
     t2[150:] += 4.0
-    c = gaussian(profile_image([t, t2]))
+    c = gaussian(profile_image([t, t2]), level=LEVEL_38)  # as in test_merged_detected_among_normal_columns
     u = c["u"].astype(int)
     assert np.all((c["flags"][u < 150] & MERGED) == 0) and np.all((c["flags"][u >= 150] & MERGED) != 0)
 
@@ -501,3 +506,137 @@ def test_map_frames_keeps_order_and_bounds_memory(tmp_path):
         out.append(r)
     assert out == [(i, i) for i in range(30)]
     assert max(live) <= 2
+
+
+# ----------------------------------------------------------------------------- any sensor, any angle
+
+
+def line_image(angle_deg, shape=(240, 320), sigma=1.6, peak=170.0, bg=8.0, ss=4, through=None):
+    """A straight stripe at ``angle_deg`` (image x towards image y) through ``through`` (default
+    the frame's middle), Gaussian across, each pixel integrated over ss x ss samples; float image
+    (noise-free) and the line as (point, unit direction)."""
+    h, w = shape
+    p0 = np.array([w / 2 + 0.37, h / 2 - 0.21]) if through is None else np.asarray(through, float)
+    a = np.radians(angle_deg)
+    dvec = np.array([np.cos(a), np.sin(a)])
+    nvec = np.array([-dvec[1], dvec[0]])
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+    acc = np.zeros(shape)
+    for oy in (np.arange(ss) + 0.5) / ss - 0.5:
+        for ox in (np.arange(ss) + 0.5) / ss - 0.5:
+            dn = (xx + ox - p0[0]) * nvec[0] + (yy + oy - p0[1]) * nvec[1]
+            acc += np.exp(-0.5 * (dn / sigma) ** 2)
+    return bg + peak * acc / ss**2, (p0, nvec)
+
+
+def normal_error(c, line):
+    p0, n = line
+    return (c["u"] - p0[0]) * n[0] + (c["v"] - p0[1]) * n[1]
+
+
+def noisy(img, seed=0, full=255, dtype=np.uint8):
+    rng = np.random.default_rng(seed)
+    return np.clip(np.round(img + rng.normal(0, 1.0, img.shape) * np.sqrt(0.5 * img + 1)), 0,
+                   full).astype(dtype)
+
+
+@pytest.mark.parametrize("angle", [0.0, 45.0, 90.0, 135.0, 80.0, 100.0])
+@pytest.mark.parametrize("extractor", ["gaussian", "grey_centre"])
+def test_stripes_at_any_angle(angle, extractor):
+    """A stripe along the columns ('|', a '+' cross's other arm) is found as well as a level
+    one: profiled along the rows where it is steeper than ROW_SLOPE, every centre in the
+    frame's own (u, v), on the true line."""
+    from crossline.scan.stripes import extract
+
+    f, line = line_image(angle)
+    img = noisy(f, seed=int(angle))
+    c = extract(img, extractor, threshold=0.10)
+    e = normal_error(c, line)
+    # the stripe's length inside the frame, px, and the centres found along it: one per column
+    # or per row, whichever the stripe crosses more of (a 45 deg stripe: one per column)
+    h, w = img.shape
+    a = np.radians(angle)
+    length = min(w / max(abs(np.cos(a)), 1e-9), h / max(abs(np.sin(a)), 1e-9))
+    expected = length * max(abs(np.cos(a)), abs(np.sin(a)))
+    clean = (c["flags"] & (MERGED | EDGE)) == 0
+    assert clean.sum() > 0.9 * expected, (clean.sum(), expected)
+    assert np.sqrt(np.mean(e[clean] ** 2)) < 0.08
+    # the old column-only extraction: a stripe along the columns gives no usable centre
+    if abs(np.cos(a)) < 0.2:
+        old = extract(img, extractor, threshold=0.10, rows=False)
+        ok = (old["flags"] & MERGED) == 0
+        assert np.sum(np.abs(normal_error(old, line)[ok]) < 0.5) < 0.1 * expected
+        assert np.all(c["axis"][clean] == 1)
+    if abs(np.sin(a)) < 0.5:
+        assert np.all(c["axis"] == 0)
+
+
+def test_plus_cross_both_arms():
+    """A '+' turned by 10 deg: the level arm by columns, the steep arm by rows, each on its line."""
+    from crossline.scan.stripes import extract
+
+    f1, l1 = line_image(10.0)
+    f2, l2 = line_image(100.0)
+    img = noisy(f1 + f2 - 8.0, seed=3)
+    c = extract(img, "gaussian", threshold=0.10)
+    good = (c["flags"] & (MERGED | EDGE)) == 0
+    e1, e2 = np.abs(normal_error(c, l1)), np.abs(normal_error(c, l2))
+    on1, on2 = good & (e1 < 0.5), good & (e2 < 0.5)
+    assert on1.sum() > 250 and on2.sum() > 180
+    assert np.all(c["axis"][on1 & ~on2] == 0) and np.all(c["axis"][on2 & ~on1] == 1)
+    # nothing off both lines but the crossing's merged blob
+    off = good & (e1 > 1.0) & (e2 > 1.0)
+    assert off.sum() <= 2
+
+
+def test_twelve_bit_data_in_sixteen_bit_frames_and_exposure(tmp_path):
+    """12-bit data in the low bits of 16-bit PNGs, and a frame at 20 % exposure: the stage finds
+    the same centres as on the 8-bit frames at full exposure (within the noise), infers the
+    data range and says so. The former threshold (0.15 of the container's 65535) found nothing."""
+    import yaml
+
+    from crossline.io.images import write_png
+    from crossline.scan.stripes import run_extract_stripes
+    from tests import scan_synth
+
+    truth = scan_synth.make_capture(tmp_path / "c8", n_frames=6)
+    ref = run_extract_stripes(tmp_path / "c8", "plate", tmp_path / "s8.parquet", extractor="gaussian")
+    assert ref["data_range"] == {"max": 255, "bits": 8, "source": "8-bit frames"}
+    s8 = pq.read_table(tmp_path / "s8.parquet").to_pandas()
+    import shutil
+
+    for name, gain in (("c12", 4095 / 255), ("c12_dim", 0.2 * 4095 / 255)):
+        root = tmp_path / name
+        shutil.copytree(tmp_path / "c8", root)
+        rig = yaml.safe_load((root / "rig.yaml").read_text())
+        rig["sensor"]["bit_depth"] = 16
+        (root / "rig.yaml").write_text(yaml.safe_dump(rig))
+        rng = np.random.default_rng(5)
+        for f in sorted((root / "scans" / "plate" / "frames").glob("*.png")):
+            x = cv2.imread(str(f), cv2.IMREAD_UNCHANGED).astype(float)
+            # the signal above the background scaled; sensor noise of the 12-bit camera added
+            y = 5.0 * 4095 / 255 + (x - 5.0) * gain + rng.normal(0, 2.0, x.shape)
+            write_png(f, np.clip(np.round(y), 0, 4095).astype(np.uint16))
+        meta = run_extract_stripes(root, "plate", tmp_path / f"{name}.parquet", extractor="gaussian")
+        # inferred from the data: the dim frames never reach 1023, whatever the camera's ADC
+        bits = 12 if name == "c12" else 10
+        assert meta["data_range"]["max"] == 2**bits - 1 and meta["data_range"]["bits"] == bits
+        assert "inferred from the frames" in meta["data_range"]["source"]
+        s = pq.read_table(tmp_path / f"{name}.parquet").to_pandas()
+        m = s8.merge(s, on=["frame", "u"], suffixes=("_8", ""))
+        one = m.groupby(["frame", "u"]).filter(lambda g: len(g) == 1)  # A or B frames: one stripe
+        assert len(s) > 0.97 * len(s8)
+        d = (one["v"] - one["v_8"]).to_numpy()
+        # the same centres within the noise (measured RMS 0.005 / 0.011 px; the 20 % frame has
+        # 5x less signal)
+        assert abs(np.mean(d)) < 0.005 and np.sqrt(np.mean(d**2)) < (0.02 if name == "c12" else 0.04)
+        # against the truth as well
+        err = [s.v[(s.frame == f) & (s.lasers == st)].to_numpy()
+               - np.interp(s.u[(s.frame == f) & (s.lasers == st)], truth["cols"], truth["v"][f][st])
+               for f, st in zip(truth["frames"], truth["states"], strict=True) if st in ("A", "B")]
+        err = np.concatenate(err)
+        assert np.sqrt(np.mean(err**2)) < (0.1 if name == "c12" else 0.3)
+    # the former threshold (0.15 of 65535 = 9830 counts) lies above every 12-bit pixel
+    img = cv2.imread(str(tmp_path / "c12" / "scans" / "plate" / "frames" / "000000.png"),
+                     cv2.IMREAD_UNCHANGED)
+    assert img.max() < 0.15 * 65535

@@ -117,9 +117,17 @@ NEIGHBOUR_DV = 2.5  # largest row step between the same stripe in adjacent colum
 STEEP_LENGTH_RATIO = 0.67  # runs of a steep stripe in adjacent columns differ in length by less
 RIDGE_FRACTION = 0.5  # Steger: a run's ridge claims weaker than this share of its strongest are dropped
 ACROSS_SLOPE = 0.3  # gaussian: stripes steeper than this (|dv/du|) are refitted across the stripe
+ROW_SLOPE = 4.0  # stripes steeper than this (|dv/du|, 76 deg) are profiled along the rows
+MIN_STEEP_ROWS = 48  # ... where the steep stretch spans this many rows (not a curve's steep end)
 FRAMES_PER_GROUP = 64  # parquet row group = frames [64k, 64k + 64) of the scan
+DATA_BITS = (8, 10, 12, 14, 16)  # ADC ranges a camera may write into its images' containers
+NOISE_K = 6.0  # a stripe stands at least this many background-noise sigmas above the background
+PEAK_QUANTILE = 0.9  # the stripe's peak: this quantile of the stripe columns' brightest pixels
+MIN_STRIPE_COLUMNS = 3  # fewer columns above the noise floor: the frame holds no stripe
+LEVEL_STEP = 5  # background and noise from every 5th pixel of every 5th column
+DATA_RANGE_FRAMES = 16  # frames spread over a scan that the data range is inferred from
 
-COLUMNS = ("u", "v", "strength", "peak", "width", "width_n", "nx", "ny", "ridge", "flags")
+COLUMNS = ("u", "v", "strength", "peak", "width", "width_n", "nx", "ny", "ridge", "flags", "axis")
 _F32 = ("strength", "peak", "width", "width_n", "nx", "ny", "ridge")
 
 STRIPES_SCHEMA = pa.schema(
@@ -130,6 +138,7 @@ STRIPES_SCHEMA = pa.schema(
         ("v", pa.float64()),
         *[(c, pa.float32()) for c in _F32],
         ("flags", pa.uint8()),
+        ("axis", pa.uint8()),
     ]
 )
 _META_KEY = b"crossline"
@@ -137,7 +146,7 @@ _META_KEY = b"crossline"
 
 def empty_centres() -> dict[str, np.ndarray]:
     """A centre table with no rows."""
-    out = {c: np.empty(0, np.float64) for c in COLUMNS}
+    out = {c: np.empty(0, np.float64) for c in COLUMNS if c != "axis"}
     out["flags"] = np.empty(0, np.uint8)
     return out
 
@@ -148,6 +157,63 @@ def full_scale(dtype: np.dtype) -> float:
     if dtype.kind not in "ui":
         raise ValueError(f"stripe images must be unsigned integers, got {dtype}")
     return float(np.iinfo(dtype).max)
+
+
+def data_bits_for(max_value: float) -> int:
+    """Fewest ADC bits (one of :data:`DATA_BITS`) whose range ``0 .. 2^b - 1`` holds ``max_value``."""
+    for b in DATA_BITS:
+        if max_value <= 2**b - 1:
+            return b
+    return DATA_BITS[-1]
+
+
+def frame_levels(imT: np.ndarray, threshold: float, data_max: float | None = None) -> dict[str, float]:
+    """The intensity levels of one frame (as (width, height)) that set its stripe threshold.
+
+    ``background`` is the median of a sparse sample (the stripes cover a few per cent of a
+    frame), ``noise`` the RMS deviation about it of the sample's pixels within 5 robust sigmas
+    (robust where the data are quantised to a fraction of a count; at least the quantisation's
+    ``sqrt(1/12)``), ``peak`` the ``PEAK_QUANTILE`` quantile of the brightest pixel of the
+    columns whose brightest pixel stands ``NOISE_K`` noise sigmas above the background (the
+    columns that hold a stripe). The threshold ``level`` is ``background + threshold (peak -
+    background)``, never below ``background + NOISE_K noise``; a frame without stripe columns
+    has ``level = inf``. ``data_max`` (default: the frame's own maximum rounded up to a whole
+    number of bits) is the saturation level.
+    """
+    # by the histogram of the sample: integer data, and a sort of it would cost a frame's fit
+    hist = np.bincount(np.ascontiguousarray(imT[::LEVEL_STEP, ::LEVEL_STEP]).ravel())
+    vals = np.arange(hist.size, dtype=np.float64)
+    half = 0.5 * hist.sum()
+    bg = float(np.searchsorted(np.cumsum(hist), half))
+    d = np.abs(vals - bg)
+    o = np.argsort(d, kind="stable")
+    mad = 1.4826 * float(d[o][np.searchsorted(np.cumsum(hist[o]), half)])
+    near = d <= 5.0 * max(mad, 1.0)
+    noise = float(np.sqrt((hist[near] * d[near] ** 2).sum() / max(hist[near].sum(), 1)))
+    noise = max(noise, float(np.sqrt(1.0 / 12.0)))
+    cm = imT.max(axis=1)
+    top = float(cm.max()) if cm.size else 0.0
+    if data_max is None:
+        data_max = 255.0 if imT.dtype == np.uint8 else float(2 ** data_bits_for(top) - 1)
+    stripe_cols = cm[cm > bg + NOISE_K * noise]
+    if stripe_cols.size < MIN_STRIPE_COLUMNS:
+        peak, level = float("nan"), float("inf")
+    else:
+        peak = float(np.quantile(stripe_cols, PEAK_QUANTILE))
+        level = max(bg + threshold * (peak - bg), bg + NOISE_K * noise)
+    return {"background": bg, "noise": noise, "peak": peak, "level": level, "data_max": float(data_max)}
+
+
+def _level_and_max(imT: np.ndarray, threshold: float, level: float | None,
+                   data_max: float | None) -> tuple[float, float]:
+    """The absolute threshold and saturation level of a frame: given, or from its statistics."""
+    if level is not None:
+        top = float(np.iinfo(imT.dtype).max) if imT.dtype == np.uint8 else None
+        if data_max is None:
+            data_max = top if top is not None else float(2 ** data_bits_for(float(imT.max())) - 1)
+        return float(level), float(data_max)
+    lv = frame_levels(imT, threshold, data_max)
+    return lv["level"], lv["data_max"]
 
 
 # ----------------------------------------------------------------------------- runs
@@ -436,10 +502,16 @@ def grey_centre(
     pad: int = 2,
     backend: str = "auto",
     transposed: bool = False,
+    *,
+    data_max: float | None = None,
+    level: float | None = None,
 ) -> dict[str, np.ndarray]:
     """Grey-centre (eq. 9) of every stripe segment of every column of a grey frame.
 
-    ``threshold`` is a fraction of full scale; ``min_width``/``max_width`` bound a run's
+    ``threshold`` is a fraction of the stripe's peak above the background, with a floor at
+    ``NOISE_K`` noise sigmas (:func:`frame_levels`), or ``level`` the threshold in counts;
+    ``data_max`` is the sensor's saturation level (default: inferred from the frame's
+    maximum, :func:`frame_levels`). ``min_width``/``max_width`` bound a run's
     length along the column (px); ``pad`` is how far the window reaches beyond the run.
     ``backend``: ``numba`` (compiled kernels), ``numpy`` (vectorised) or ``auto`` (numba if
     installed); both give the same centres. ``transposed``: ``img`` is the frame as
@@ -447,9 +519,9 @@ def grey_centre(
     transpose here). Returns a centre table (module doc) in frame-local pixels, sorted by
     (u, v).
     """
-    full = full_scale(img.dtype)
-    thr = threshold * full
+    full_scale(img.dtype)  # unsigned integers only
     imT = _columns(img, transposed)
+    thr, full = _level_and_max(imT, threshold, level, data_max)
     W, H = imT.shape
     flat = imT.reshape(-1)
     nb = _use_numba(backend)
@@ -787,10 +859,14 @@ def gaussian(
     return_info: bool = False,
     transposed: bool = False,
     across: bool = True,
+    *,
+    data_max: float | None = None,
+    level: float | None = None,
 ) -> dict[str, np.ndarray] | tuple[dict[str, np.ndarray], dict[str, float]]:
     """Weighted least-squares Gaussian profile of every stripe segment of every column.
 
-    Each run above ``threshold`` (fraction of full scale) is widened on each side by ``pad``
+    Each run above the threshold (``threshold``, ``level``, ``data_max`` as for
+    :func:`grey_centre`) is widened on each side by ``pad``
     px or half its length, whichever is more (never past the midpoint of the gap to a
     neighbouring run, less the background pixels); a background line is
     fitted to the ``BG_FIT_PIXELS`` pixels beyond each end; the profile
@@ -810,9 +886,9 @@ def gaussian(
     and with ``return_info`` also ``{"noise_dn": sigma_n, "relative_noise": r}``.
     ``transposed``: ``img`` is the frame as (width, height), as for :func:`grey_centre`.
     """
-    full = full_scale(img.dtype)
-    thr = threshold * full
+    full_scale(img.dtype)  # unsigned integers only
     imT = _columns(img, transposed)
+    thr, full = _level_and_max(imT, threshold, level, data_max)
     W, H = imT.shape
     flat = imT.reshape(-1)
     col, r0, r1 = _runs_nb(np.flatnonzero(imT > _int_threshold(thr, imT.dtype)), H, float(min_width))
@@ -1009,17 +1085,21 @@ def steger(
     min_width: float = 2.0,
     max_width: float = 30.0,
     sigma: float = 2.0,
+    *,
+    data_max: float | None = None,
+    level: float | None = None,
 ) -> dict[str, np.ndarray]:
     """Steger's Hessian line detector, one centre per stripe per column (module doc).
 
-    Candidates are the pixels of the runs above ``threshold`` (fraction of full scale) of
+    Candidates are the pixels of the runs above the threshold (``threshold``, ``level``,
+    ``data_max`` as for :func:`grey_centre`) of
     at least ``min_width`` px; ``sigma`` is the Gaussian scale in px. Returns a centre table
     in frame-local pixels, sorted by (u, v).
     """
-    full = full_scale(img.dtype)
-    thr = threshold * full
+    full_scale(img.dtype)  # unsigned integers only
     H, W = img.shape
     imT = np.ascontiguousarray(cv2.transpose(img))
+    thr, full = _level_and_max(imT, threshold, level, data_max)
     if HAVE_NUMBA:
         col, r0, r1 = _runs_nb(np.flatnonzero(imT > _int_threshold(thr, imT.dtype)), H, float(min_width))
     else:  # pragma: no cover - numba is a dependency
@@ -1089,6 +1169,135 @@ def _run_ny(col: np.ndarray, r0: np.ndarray, r1: np.ndarray, W: int) -> np.ndarr
     return 1.0 / np.sqrt(1.0 + slope * slope)
 
 
+# ----------------------------------------------------------------------------- any angle
+
+
+@_jit
+def _run_lengths_nb(imT, thr, q0, q1):  # pragma: no cover - compiled
+    """Length of the run above ``thr`` along the second axis of ``imT`` through each pixel
+    ``imT[q0[i], q1[i]]`` (0 where that pixel is not above it, or lies outside)."""
+    A, B = imT.shape
+    out = np.zeros(q0.size, np.int64)
+    for i in range(q0.size):
+        a = q0[i]
+        b = q1[i]
+        if a < 0 or a >= A or b < 0 or b >= B or not imT[a, b] > thr:
+            continue
+        lo = b
+        while lo > 0 and imT[a, lo - 1] > thr:
+            lo -= 1
+        hi = b
+        while hi < B - 1 and imT[a, hi + 1] > thr:
+            hi += 1
+        out[i] = hi - lo + 1
+    return out
+
+
+@_jit
+def _has_long_run_nb(imT, thr, stride, longest):  # pragma: no cover - compiled
+    """Whether every ``stride``-th row of ``imT`` holds a run above ``thr`` longer than ``longest``."""
+    A, B = imT.shape
+    for a in range(0, A, stride):
+        n = 0
+        for b in range(B):
+            if imT[a, b] > thr:
+                n += 1
+                if n > longest:
+                    return True
+            else:
+                n = 0
+    return False
+
+
+def _long_steep(row: np.ndarray, col: np.ndarray, cand: np.ndarray, shape_T: tuple[int, int]) -> np.ndarray:
+    """Which candidate row centres lie on a steep stretch spanning ``MIN_STEEP_ROWS`` rows or more.
+
+    The candidates' pixels are marked and joined (8-connected; a stripe steeper than
+    ``ROW_SLOPE`` moves less than a pixel per row), and stretches shorter than that are left
+    to the column profiles: the steep ends of a curve (a ball's rim) stay as they were.
+    """
+    W, H = shape_T
+    out = np.zeros(row.size, bool)
+    if not cand.any():
+        return out
+    rr = row[cand].astype(np.int64)
+    cc = np.round(col[cand]).astype(np.int64).clip(0, W - 1)
+    mask = np.zeros((H, W), np.uint8)
+    mask[rr, cc] = 1
+    mask = cv2.dilate(mask, np.ones((3, 1), np.uint8))  # bridge a row whose fit failed
+    _n, lab, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    tall = stats[:, cv2.CC_STAT_HEIGHT] >= min(MIN_STEEP_ROWS, H // 2)
+    out[np.flatnonzero(cand)] = tall[lab[rr, cc]]
+    return out
+
+
+def _swap_axes(c: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """A centre table of the transposed frame in the frame's own (u, v), normals with ny >= 0."""
+    out = dict(c)
+    out["u"], out["v"] = c["v"], c["u"]
+    nx, ny = c["ny"], c["nx"]
+    sign = np.where(ny < 0, -1.0, 1.0)
+    out["nx"], out["ny"] = nx * sign, ny * sign
+    return out
+
+
+def any_angle(columns_fn, imT: np.ndarray, level: float, max_width: float) -> dict[str, np.ndarray]:
+    """Centres of stripes at any angle: profiles along the columns, and along the rows where
+    the stripe is steeper than ``ROW_SLOPE``.
+
+    ``columns_fn(a)`` extracts the centres of an image given as (width, height), profiling
+    along its second axis, at the absolute threshold ``level``. It runs on the frame
+    (``imT``, the frame as (width, height)) and, when that finds stripes steeper than
+    ``ROW_SLOPE`` rows per column or the frame holds column runs longer than ``ROW_SLOPE``
+    times the typical run (``max_width`` at most), on the transposed frame. Each
+    row centre is kept where the column run through its pixel is more than ``ROW_SLOPE`` times
+    its own, on a steep stretch of ``MIN_STEEP_ROWS`` rows or more (:func:`_long_steep`); the
+    column centres inside the runs of the row centres kept give way to them. Returns the
+    centre table with ``axis`` (0: profile along the column, ``u`` integer; 1: along the row,
+    ``v`` integer), sorted by (u, v).
+    """
+    c = columns_fn(imT)
+    n = c["u"].size
+    c["axis"] = np.zeros(n, np.uint8)
+    if not np.isfinite(level):
+        return c
+    thr = _int_threshold(level, imT.dtype)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slope = np.abs(c["nx"] / c["ny"])
+    # a steep stripe's column runs are long (a fit may have failed on them: look at the runs);
+    # every second column is enough for a stripe two pixels wide
+    typical = float(np.median(c["width"])) if n else 2.0
+    longest = int(min(max_width, ROW_SLOPE * typical))
+    if not (np.any(slope > ROW_SLOPE) or _has_long_run_nb(imT, thr, 2, longest)):
+        return c
+    imR = np.ascontiguousarray(cv2.transpose(imT))  # the frame as (height, width)
+    r = columns_fn(imR)
+    # the column run through each row centre's pixel
+    lc = _run_lengths_nb(imT, thr, np.round(r["v"]).astype(np.int64), r["u"].astype(np.int64))
+    keep_r = lc > ROW_SLOPE * r["width"]
+    keep_r &= _long_steep(r["u"], r["v"], keep_r, imT.shape)
+    if not keep_r.any():
+        return c
+    # the steep stretches the rows profile are theirs: a column centre whose pixel lies in one
+    # of their runs (a pixel of margin: the flanks, where noise crosses the threshold) goes
+    W, H = imT.shape
+    half = 0.5 * r["width"][keep_r] + 1.0
+    c0 = np.floor(r["v"][keep_r] - half).astype(np.int64)
+    n_px = np.ceil(r["v"][keep_r] + half).astype(np.int64) - c0 + 1
+    first = np.repeat(np.cumsum(n_px) - n_px, n_px)
+    start = np.repeat(c0, n_px) + (np.arange(int(n_px.sum())) - first)
+    taken = np.zeros((H, W), bool)
+    taken[np.repeat(r["u"][keep_r].astype(np.int64), n_px), start.clip(0, W - 1)] = True
+    cu = c["u"].astype(np.int64)
+    cv_ = np.round(c["v"]).astype(np.int64).clip(0, H - 1)
+    keep_c = ~taken[cv_, cu]
+    r = _swap_axes({k: x[keep_r] for k, x in r.items()})
+    r["axis"] = np.ones(int(keep_r.sum()), np.uint8)
+    out = {k: np.concatenate([c[k][keep_c], r[k]]) for k in c}
+    o = np.lexsort((out["v"], out["u"]))
+    return {k: x[o] for k, x in out.items()}
+
+
 def extract(
     img: np.ndarray,
     extractor: str = "grey_centre",
@@ -1101,15 +1310,32 @@ def extract(
     fit_pad: int = 6,
     relative_noise: float | None = None,
     fit_across: bool = True,
+    data_max: float | None = None,
+    level: float | None = None,
+    rows: bool = True,
 ) -> dict[str, np.ndarray]:
-    """Centre table of one frame with the chosen extractor (one of :data:`EXTRACTORS`)."""
-    if extractor == "grey_centre":
-        return grey_centre(img, threshold, min_width, max_width, pad)
-    if extractor == "gaussian":
-        return gaussian(img, threshold, min_width, max_width, fit_pad, relative_noise, across=fit_across)
-    if extractor == "steger":
-        return steger(img, threshold, min_width, max_width, sigma)
-    raise ValueError(f"unknown extractor {extractor!r}; expected one of {EXTRACTORS}")
+    """Centre table of one frame (height, width) with the chosen extractor (one of
+    :data:`EXTRACTORS`); with ``rows``, stripes at any angle (:func:`any_angle`)."""
+    if extractor not in EXTRACTORS:
+        raise ValueError(f"unknown extractor {extractor!r}; expected one of {EXTRACTORS}")
+    imT = np.ascontiguousarray(cv2.transpose(np.ascontiguousarray(img)))
+    lv, dm = _level_and_max(imT, threshold, level, data_max)
+    kw = {"threshold": threshold, "min_width": min_width, "max_width": max_width,
+          "data_max": dm, "level": lv}
+
+    def fn(a: np.ndarray) -> dict[str, np.ndarray]:
+        if extractor == "grey_centre":
+            return grey_centre(a, pad=pad, transposed=True, **kw)
+        if extractor == "gaussian":
+            return gaussian(a, pad=fit_pad, relative_noise=relative_noise, across=fit_across,
+                            transposed=True, **kw)
+        return steger(np.ascontiguousarray(cv2.transpose(a)), sigma=sigma, **kw)
+
+    if not rows:
+        c = fn(imT)
+        c["axis"] = np.zeros(c["u"].size, np.uint8)
+        return c
+    return any_angle(fn, imT, lv, max_width)
 
 
 # ----------------------------------------------------------------------------- stage
@@ -1126,6 +1352,7 @@ def _table(frame: int, state: str, c: dict[str, np.ndarray], du: float, dv: floa
     for name in _F32:
         cols[name] = pa.array(c[name].astype(np.float32))
     cols["flags"] = pa.array(c["flags"].astype(np.uint8))
+    cols["axis"] = pa.array(c["axis"].astype(np.uint8) if "axis" in c else np.zeros(n, np.uint8))
     return pa.table(cols, schema=STRIPES_SCHEMA)
 
 
@@ -1175,29 +1402,63 @@ class _GroupedWriter:
         self.writer.close()
 
 
-def _frame_work(extractor: str, params: dict[str, Any]):
-    """The per-frame function of the stage, and whether it takes frames transposed."""
-    if extractor == "gaussian":
-        kw = {"threshold": params["threshold"], "min_width": params["min_width"],
-              "max_width": params["max_width"], "pad": params["fit_pad"],
-              "relative_noise": params["relative_noise"], "across": params["fit_across"]}
+def _frame_work(extractor: str, params: dict[str, Any], data_max: float):
+    """The per-frame function of the stage; it takes frames transposed, (width, height)."""
+    kw = {"threshold": params["threshold"], "min_width": params["min_width"],
+          "max_width": params["max_width"], "data_max": data_max}
 
-        def fit(i: int, imT: np.ndarray) -> dict[str, Any]:
-            c, info = gaussian(imT, **kw, return_info=True, transposed=True)
-            return {**c, "_info": info}
+    def work(i: int, imT: np.ndarray) -> dict[str, Any]:
+        lv = frame_levels(imT, params["threshold"], data_max)
+        info: dict[str, Any] = {"levels": lv}
 
-        return fit, True
-    if extractor == "grey_centre":
-        def grey(i: int, imT: np.ndarray) -> dict[str, np.ndarray]:
-            return grey_centre(imT, params["threshold"], params["min_width"], params["max_width"],
-                               params["pad"], transposed=True)
+        def fn(a: np.ndarray) -> dict[str, np.ndarray]:
+            if extractor == "gaussian":
+                c, inf = gaussian(a, pad=params["fit_pad"], relative_noise=params["relative_noise"],
+                                  across=params["fit_across"], return_info=True, transposed=True,
+                                  level=lv["level"], **kw)
+                info.setdefault("fit", inf)  # the column pass's: the frame's noise
+                return c
+            if extractor == "grey_centre":
+                return grey_centre(a, pad=params["pad"], transposed=True, level=lv["level"], **kw)
+            return steger(np.ascontiguousarray(cv2.transpose(a)), sigma=params["sigma"],
+                          level=lv["level"], **kw)  # Steger smooths the image itself
 
-        return grey, True
+        c = any_angle(fn, imT, lv["level"], params["max_width"])
+        mp = params.get("min_peak")
+        if mp and c["u"].size and np.isfinite(lv["peak"]):
+            bright = c["peak"] >= lv["background"] + mp * (lv["peak"] - lv["background"])
+            if not bright.all():
+                c = {k: x[bright] for k, x in c.items()}
+        return {**c, "_info": info}
 
-    def fn(i: int, img: np.ndarray) -> dict[str, np.ndarray]:  # Steger smooths the image itself
-        return extract(img, extractor, **params)
+    return work
 
-    return fn, False
+
+def _data_range(paths: list[Path], data_bits: int | None, shape, decoder: str,
+                channel: str | None = None) -> dict[str, Any]:
+    """The sensor's data range: ``rig.yaml``'s ``sensor.data_bits``, else inferred.
+
+    Inferred from the largest value over up to ``DATA_RANGE_FRAMES`` frames spread evenly over
+    the whole scan (the same frames for every chunk, so chunks agree), rounded up to
+    ``2^b - 1`` for the fewest bits ``b`` of :data:`DATA_BITS` that hold it; an 8-bit container
+    holds 8 bits.
+    """
+    from crossline.scan.frames import read_frame
+
+    if data_bits is not None:
+        return {"max": 2 ** int(data_bits) - 1, "bits": int(data_bits), "source": "rig.yaml sensor.data_bits"}
+    if not paths:
+        return {"max": 255, "bits": 8, "source": "no frames"}
+    idx = np.unique(np.linspace(0, len(paths) - 1, min(DATA_RANGE_FRAMES, len(paths))).round().astype(int))
+    top = 0
+    for k in idx:
+        img = read_frame(paths[k], shape, decoder, True, channel)
+        if img.dtype == np.uint8:
+            return {"max": 255, "bits": 8, "source": "8-bit frames"}
+        top = max(top, int(img.max()))
+    bits = data_bits_for(top)
+    return {"max": 2**bits - 1, "bits": bits,
+            "source": f"inferred from the frames (largest value {top} over {idx.size} frames)"}
 
 
 def run_extract_stripes(
@@ -1206,7 +1467,7 @@ def run_extract_stripes(
     out: str | Path,
     *,
     extractor: str = "grey_centre",
-    threshold: float = 0.15,
+    threshold: float = 0.10,
     min_width: float = 2.0,
     max_width: float = 30.0,
     sigma: float = 2.0,
@@ -1217,6 +1478,7 @@ def run_extract_stripes(
     relative_noise: float | None = None,
     fit_across: bool = True,
     decoder: str = "auto",
+    min_peak: float = 0.17,
 ) -> dict[str, Any]:
     """Extract the stripe centres of one scan's frames (or one chunk of them) to parquet.
 
@@ -1231,7 +1493,8 @@ def run_extract_stripes(
     if extractor not in EXTRACTORS:
         raise StageError(f"unknown extractor {extractor!r}; expected one of {EXTRACTORS}")
     if not 0 < threshold < 1:
-        raise StageError(f"threshold is a fraction of full scale in (0, 1), got {threshold}")
+        raise StageError(f"threshold is a fraction of the stripe's peak above the background, "
+                         f"in (0, 1), got {threshold}")
     cap = open_capture(capture)
     if scan not in cap.scans:
         raise StageError(f"capture {cap.root}: no scan {scan!r} (known: {sorted(cap.scans)})")
@@ -1240,7 +1503,7 @@ def run_extract_stripes(
     lo, hi = _chunk_bounds(len(sc.frames), chunk)
     frames = sc.frames[lo:hi]
     states = sc.lasers[lo:hi]
-    params = {"threshold": threshold, "min_width": min_width, "max_width": max_width}
+    params = {"threshold": threshold, "min_width": min_width, "max_width": max_width, "min_peak": min_peak}
     if extractor == "steger":
         params["sigma"] = sigma
     elif extractor == "gaussian":
@@ -1258,8 +1521,19 @@ def run_extract_stripes(
               **{f"flag_{name}": 0 for name in FLAG_NAMES.values()}}
     t0 = time.perf_counter()
     noise: list[tuple[int, float, float]] = []
+    levels: list[tuple[int, float, float, float, float]] = []
     paths = [sc.frame_path(f) for f in frames]
-    fit, transposed = _frame_work(extractor, params)
+    sensor = cap.rig.sensor
+    channel = getattr(sensor, "channel", None)
+    try:
+        rng_ = _data_range([sc.frame_path(f) for f in sc.frames], getattr(sensor, "data_bits", None),
+                           (win.height, win.width), decoder, channel)
+    except CrosslineError as exc:
+        raise StageError(f"scan {scan}: {exc}") from exc
+    meta["data_range"] = rng_
+    log.info("scan %s: data range 0..%d (%d bits, %s)", scan, rng_["max"], rng_["bits"], rng_["source"])
+    fit = _frame_work(extractor, params, float(rng_["max"]))
+    transposed = True
 
     def work(j: int, img: np.ndarray) -> tuple[dict[str, Any], pa.Table, dict[str, int]]:
         # the table and the flag counts are made in the worker thread too: the loop below,
@@ -1271,7 +1545,7 @@ def run_extract_stripes(
     with atomic_path(out) as tmp:
         writer = _GroupedWriter(tmp)
         it = map_frames(paths, work, shape=(win.height, win.width), threads=threads, decoder=decoder,
-                        transposed=transposed)
+                        transposed=transposed, channel=channel)
         try:
             for j, (c, table, flags) in enumerate(it):
                 counts["frames"] += 1
@@ -1280,17 +1554,25 @@ def run_extract_stripes(
                 counts["centres"] += nc
                 for name, k in flags.items():
                     counts[f"flag_{name}"] += k
-                if "_info" in c and nc:
-                    noise.append((int(frames[j]), c["_info"]["noise_dn"], c["_info"]["relative_noise"]))
+                info = c["_info"]
+                lv = info["levels"]
+                levels.append((int(frames[j]), lv["background"], lv["noise"], lv["peak"], lv["level"]))
+                if "fit" in info and nc:
+                    noise.append((int(frames[j]), info["fit"]["noise_dn"], info["fit"]["relative_noise"]))
                 writer.add(table)
         except CrosslineError as exc:
             raise StageError(f"scan {scan}: {exc}") from exc
         if chunk[1] == 1 and counts["centres"] == 0:
+            bg = np.median([r[1] for r in levels]) if levels else float("nan")
+            nz = np.median([r[2] for r in levels]) if levels else float("nan")
             raise StageError(
-                f"scan {scan}: no stripe found in any of its {counts['frames']} frames "
-                f"(threshold {threshold} of full scale); are the lasers on, is the exposure right?"
+                f"scan {scan}: no stripe found in any of its {counts['frames']} frames: no column "
+                f"of a frame holds a pixel {NOISE_K:g} noise sigmas above the background "
+                f"(background {bg:.1f}, noise {nz:.2f} counts, data range 0..{rng_['max']}); "
+                f"are the lasers on, is the exposure right?"
             )
         meta["counts"] = counts
+        meta["levels"] = _level_columns(levels)
         if extractor == "gaussian":  # what the fit found in each frame: sensor noise, speckle
             meta["noise"] = _noise_columns(noise)
         meta["chunk"] = list(chunk)
@@ -1300,6 +1582,16 @@ def run_extract_stripes(
     log.info("scan %s: %d frames, %d centres, %.1f frames/s (%s, %d threads)", scan,
              counts["frames"], counts["centres"], counts["frames"] / max(dt, 1e-9), extractor, threads)
     return meta
+
+
+def _level_columns(rows: list[tuple[int, float, float, float, float]]) -> dict[str, list]:
+    """Per-frame intensity levels (background, noise, stripe peak, threshold) as JSON columns."""
+    def r(x: float) -> float | None:
+        return round(float(x), 3) if np.isfinite(x) else None
+
+    return {"frame": [x[0] for x in rows], "background": [r(x[1]) for x in rows],
+            "noise": [r(x[2]) for x in rows], "peak": [r(x[3]) for x in rows],
+            "threshold": [r(x[4]) for x in rows]}
 
 
 def _noise_columns(rows: list[tuple[int, float, float]]) -> dict[str, list]:
@@ -1335,8 +1627,8 @@ def gather_stripes(chunks: Iterable[str | Path], out: str | Path) -> dict[str, A
     metas = [metas[k] for k in order]
     first = metas[0]
     for c, m in zip(chunks, metas, strict=True):
-        for key in ("scan", "extractor", "params", "scan_window", "frames_in_scan"):
-            if m[key] != first[key]:
+        for key in ("scan", "extractor", "params", "scan_window", "frames_in_scan", "data_range"):
+            if m.get(key) != first.get(key):
                 raise StageError(f"{c}: {key} {m[key]!r} differs from {chunks[0]}'s {first[key]!r}")
     pos = 0
     for c, m in zip(chunks, metas, strict=True):
@@ -1352,8 +1644,12 @@ def gather_stripes(chunks: Iterable[str | Path], out: str | Path) -> dict[str, A
             counts[k] = counts.get(k, 0) + int(v)
     meta = {k: first[k] for k in ("scan", "extractor", "params", "scan_window", "frames_in_scan")}
     meta["counts"] = counts
-    if "noise" in first:
-        meta["noise"] = {key: [x for m in metas for x in m["noise"][key]] for key in first["noise"]}
+    for key in ("data_range",):
+        if key in first:
+            meta[key] = first[key]
+    for key in ("noise", "levels"):
+        if key in first:
+            meta[key] = {c: [x for m in metas for x in m[key][c]] for c in first[key]}
     meta["chunk"] = [0, 1]
     meta["frame_range"] = [0, pos]
     if counts["centres"] == 0:

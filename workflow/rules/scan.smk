@@ -18,6 +18,7 @@ rule extract_stripes:
         fit_pad=config["stripes"]["fit_pad"],
         relative_noise=config["stripes"]["relative_noise"],
         fit_across=config["stripes"]["fit_across"],
+        min_peak=config["stripes"]["min_peak"],
     log:
         "logs/{capture}/extract_stripes/{scan}.part{i}-of-{n}.log",
     benchmark:
@@ -32,7 +33,7 @@ rule extract_stripes:
         "--out {output.part} --extractor {params.extractor} --threshold {params.threshold} "
         "--min-width {params.min_width} --max-width {params.max_width} --sigma {params.sigma} "
         "--pad {params.pad} --fit-pad {params.fit_pad} --relative-noise {params.relative_noise} "
-        "--fit-across {params.fit_across} "
+        "--fit-across {params.fit_across} --min-peak {params.min_peak} "
         "--chunk {wildcards.i}/{wildcards.n} --threads {threads} > {log} 2>&1"
 
 
