@@ -104,7 +104,10 @@ def _degenerate_handeye(dest: Path, tilt_deg: float = 15.0, roll_deg: float = 15
 
 
 def break_capture(good: Path, dest: Path, fault: str) -> Path:
-    """A copy of ``good`` at ``dest`` (hard links, files rewritten only where broken)."""
+    """A copy of ``good`` at ``dest`` (hard links, files rewritten only where broken).
+
+    ``outside_link`` also writes ``<dest>-outside/`` beside ``dest``; ``no_handeye``,
+    ``laser_always_on`` and ``camera_only`` are partial captures, not faults."""
     if fault == "empty":
         dest.mkdir(parents=True)
         return dest
@@ -155,6 +158,33 @@ def break_capture(good: Path, dest: Path, fault: str) -> Path:
         text = rig.read_text()
         assert "frame_rate: 80.0" in text
         _rewrite(rig, text.replace("frame_rate: 80.0", "frame_rate: fast"))
+    elif fault == "outside_name":
+        # issue 23.1: a hand-eye image named outside the capture
+        _edit_csv(dest / "calibration/handeye/poses.csv", 3, "image", "../../../../../../tmp/evil.png")
+    elif fault == "outside_link":
+        # a camera view that is a symbolic link to a file outside the capture
+        outside = dest.parent / f"{dest.name}-outside"
+        outside.mkdir(exist_ok=True)
+        view = sorted((dest / "calibration/camera").glob("*.png"))[1]
+        shutil.copy(view, outside / "evil.png")
+        view.unlink()
+        view.symlink_to(outside / "evil.png")
+    elif fault == "stray_laser":
+        # rig.yaml names one laser, the capture holds the other's views and frames
+        rig = dest / "rig.yaml"
+        _rewrite(rig, rig.read_text() + "lasers: [A]\n")
+    # partial captures (issue 18.1): not faults, check passes and says what the capture allows
+    elif fault == "no_handeye":
+        shutil.rmtree(dest / "calibration/handeye")
+    elif fault == "laser_always_on":
+        for png in (dest / "calibration").glob("laser_*/*_board.png"):
+            png.unlink()
+    elif fault == "camera_only":
+        for d in [*(dest / "calibration").glob("laser_*"), dest / "calibration/handeye", dest / "scans"]:
+            shutil.rmtree(d)
+        rig = dest / "rig.yaml"
+        text = rig.read_text()
+        _rewrite(rig, text[: text.index("\nscans:") + 1] if "\nscans:" in text else text)
     else:
         raise ValueError(f"unknown fault {fault!r}")
     return dest

@@ -880,3 +880,16 @@ def test_bit_depth_against_rig(capture: Path) -> None:
     assert ("calibration/camera/view_00.jpg: JPEG image has 8-bit samples, expected 16 "
             "(rig.yaml sensor.bit_depth)") in msg
     assert "calibration/camera/view_01.png: PNG image has 8-bit samples, expected 16" in msg
+
+
+def test_foreign_laser_states_one_problem_per_state(capture: Path) -> None:
+    """A two-laser scan under a one-laser rig.yaml: one problem per state, not one per row."""
+    edit_rig(capture, lambda d: d.__setitem__("lasers", ["A"]))
+    shutil.rmtree(capture / "calibration/laser_B")
+    with pytest.raises(CaptureError) as info:
+        open_capture(capture)
+    msg = str(info.value)
+    assert (f"{FRAMES}, line 3: laser state 'B' names laser B, which the rig lacks (rig.yaml "
+            f"lasers: [A]) (and 1 more row(s): lines 6)") in msg
+    assert f"{FRAMES}, line 4: laser state 'AB' names laser B" in msg
+    assert len(info.value.problems) == 4  # two states in each of two scans

@@ -8,6 +8,7 @@ Cases tried (hypothesis ``max_examples``): 10 properties; 60 examples each for r
 poses.csv bytes, frame bytes and missing/extra files, 80 each for rig.yaml keys and types,
 frames.csv rows, column orders, poses.csv names, image bytes in every format and PNG header
 sizes: 720 captures in all, about 10 s of CPU (20-30 s wall on 2 shared, loaded cores).
+``CROSSLINE_FUZZ_SCALE=N`` multiplies the cases.
 """
 
 from __future__ import annotations
@@ -113,8 +114,11 @@ def assert_named(exc: CaptureError, *expected: str) -> None:
         assert any(p.file.startswith(expected) for p in exc.problems), str(exc)
 
 
-FUZZ = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-MORE = settings(FUZZ, max_examples=80)
+# CROSSLINE_FUZZ_SCALE=10 multiplies every property's cases (a longer hunt, off the suite)
+_SCALE = float(os.environ.get("CROSSLINE_FUZZ_SCALE", "1"))
+FUZZ = settings(max_examples=int(60 * _SCALE), deadline=None,
+                suppress_health_check=[HealthCheck.too_slow])
+MORE = settings(FUZZ, max_examples=int(80 * _SCALE))
 cell = st.one_of(
     st.text(max_size=12),
     st.floats(allow_nan=True, allow_infinity=True).map(repr),

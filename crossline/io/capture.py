@@ -759,6 +759,7 @@ def _frames_table(
     rows = _read_table(path, rel, FRAME_COLUMNS, problems)
     frames, times, states, poses = [], [], [], []
     seen: dict[int, int] = {}
+    foreign: dict[str, list[int]] = {}  # states naming a laser the rig lacks: their lines
     last_t = -math.inf
     for lineno, row in rows:
         try:
@@ -791,11 +792,8 @@ def _frames_table(
             problems.append(Problem(rel, f"unknown laser state {state!r}; expected one "
                                          f"of {', '.join(LASER_STATES)}", lineno))
             continue
-        lacking = [x for x in LASERS if x in state and x not in rig_lasers]
-        if state != "off" and lacking:
-            problems.append(Problem(rel, f"laser state {state!r} names laser "
-                                         f"{' and '.join(lacking)}, which the rig lacks "
-                                         f"(rig.yaml lasers: [{', '.join(rig_lasers)}])", lineno))
+        if state != "off" and not set(state) <= set(rig_lasers):
+            foreign.setdefault(state, []).append(lineno)
             continue
         pose = _pose(row, lineno, rel, problems)
         if pose is None:
@@ -807,6 +805,13 @@ def _frames_table(
         times.append(t)
         states.append(state)
         poses.append(pose)
+    for state, lines in foreign.items():  # one problem per state: a scan has thousands of rows
+        lacking = " and ".join(x for x in LASERS if x in state and x not in rig_lasers)
+        more = (f" (and {len(lines) - 1} more row(s): lines {', '.join(map(str, lines[1:6]))}"
+                f"{', ...' if len(lines) > 6 else ''})" if len(lines) > 1 else "")
+        problems.append(Problem(rel, f"laser state {state!r} names laser {lacking}, which the rig "
+                                     f"lacks (rig.yaml lasers: [{', '.join(rig_lasers)}]){more}",
+                                lines[0]))
     P = np.array(poses).reshape(-1, 7)
     return FramesTable(np.array(frames, dtype=np.int64), np.array(times),
                        np.array(states, dtype=object),
