@@ -1,0 +1,204 @@
+"""The whole workflow on random rigs (issue 17.5): one row per rig against truth, then how
+many rigs meet every target.
+
+Each rig is drawn by the simulator (`crossline simulate OUT --preset random-small --seed N
+--quick` by default: sensors up to 2.3 MP, so that twenty rigs fit in a benchmark run;
+`--preset random` draws sensors of 1-12 MP, about 3-5 minutes per quick render here),
+the workflow runs on all of them in one Snakemake call (`--keep-going`: a rig that fails a
+stage is reported, not fatal), and the figures are read back from each report's
+`metrics.json` (its validation part compares the estimates with `truth.json`).
+
+Usage: python benchmarks/bench_rigs.py [--seeds 0-19] [--preset random-small] [--full] [--cores 2]
+Writes benchmarks/results/rigs.txt and rigs.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+CACHE = HERE / ".cache" / "rigs"
+RESULTS = HERE / "results"
+
+# figure -> (target, how it is compared); the targets of issue 17.5
+TARGETS: dict[str, tuple[float, str]] = {
+    "camera_px": (0.02, "<="),
+    "plane_deg": (0.005, "<="),
+    "handeye_mm": (0.01, "<="),
+    "gauge_bias_um": (3.0, "abs<="),
+    "gauge_sigma_um": (6.0, "<="),
+    "plate_within_pct": (99.0, ">="),
+    "sphere_size_um": (10.0, "abs<="),
+    "sphere_form_um": (30.0, "<="),
+    "freeform_rms_um": (30.0, "<="),
+}
+
+
+def _get(d: Any, *keys: str) -> Any:
+    for k in keys:
+        if not isinstance(d, dict) or k not in d:
+            return None
+        d = d[k]
+    return d
+
+
+def _num(x: Any, scale: float = 1.0) -> float:
+    return float(x) * scale if isinstance(x, int | float) and not isinstance(x, bool) else math.nan
+
+
+def figures(metrics: dict[str, Any], rig: dict[str, Any]) -> dict[str, float]:
+    """The benchmark's figures of one capture from its metrics.json (NaN where absent)."""
+    v = metrics.get("validation") or {}
+    out = {
+        "camera_px": _num(_get(v, "camera", "rms_px")),
+        "plane_deg": max((_num(_get(v, "lasers", L, "angle_deg")) for L in ("A", "B")
+                          if _get(v, "lasers", L) is not None), default=math.nan),
+        "handeye_mm": _num(_get(v, "handeye", "chosen", "rms_mm")),
+    }
+    kinds = {name: spec.get("artefact") for name, spec in (rig.get("scans") or {}).items()}
+    for name, scan in (metrics.get("scans") or {}).items():
+        kind = kinds.get(name)
+        if kind == "gauge_block":
+            out["gauge_bias_um"] = _num(_get(scan, "truth", "mean_error_mm"), 1e3)
+            out["gauge_sigma_um"] = _num(_get(scan, "measurement", "std_mm"), 1e3)
+        elif kind == "plane":
+            share = _get(scan, "truth", "distance_to_true_plane", "share_within_band")
+            out["plate_within_pct"] = _num(share, 100.0)
+        elif kind == "sphere":
+            out["sphere_size_um"] = _num(_get(scan, "truth", "diameter_error_mm"), 1e3)
+            out["sphere_form_um"] = _num(_get(scan, "measurement", "form_error_mm"), 1e3)
+        elif kind == "freeform":
+            out["freeform_rms_um"] = _num(_get(scan, "truth", "deviation_to_true_mesh", "rms_mm"), 1e3)
+    return out
+
+
+def meets(name: str, value: float) -> bool | None:
+    """Whether a figure meets its target (None when it was not measured)."""
+    if not math.isfinite(value):
+        return None
+    target, how = TARGETS[name]
+    if how == "<=":
+        return value <= target
+    if how == ">=":
+        return value >= target
+    return abs(value) <= target
+
+
+def render(seeds: list[int], quick: bool, preset: str = "random-small") -> dict[str, Path]:
+    """Render (or reuse) one capture per seed; returns capture name -> folder."""
+    caps = {}
+    for seed in seeds:
+        name = f"{preset}-{seed}{'' if quick else '-full'}"
+        out = CACHE / "captures" / name
+        if not (out / "rig.yaml").is_file():
+            shutil.rmtree(out, ignore_errors=True)
+            cmd = ["crossline", "simulate", str(out), "--preset", preset, "--seed", str(seed)]
+            cmd += ["--quick"] if quick else []
+            t0 = time.perf_counter()
+            subprocess.run(cmd, check=True, capture_output=True, text=True)
+            print(f"rendered {name} in {time.perf_counter() - t0:.0f} s", flush=True)
+        caps[name] = out
+    return caps
+
+
+def run_workflow(caps: dict[str, Path], cores: int) -> tuple[Path, float]:
+    """All captures through the workflow in one Snakemake run; returns the workdir and wall time."""
+    wd = CACHE / "work"
+    wd.mkdir(parents=True, exist_ok=True)
+    shutil.copy(REPO / "Snakefile", wd)
+    for d in ("workflow", "profiles"):
+        shutil.rmtree(wd / d, ignore_errors=True)
+        shutil.copytree(REPO / d, wd / d, ignore=shutil.ignore_patterns("__pycache__"))
+    cfg = yaml.safe_load((REPO / "config.yaml").read_text())
+    cfg["captures"] = sorted(caps)
+    cfg["simulate"] = {}
+    (wd / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    raw = wd / "data" / "raw"
+    raw.mkdir(parents=True, exist_ok=True)
+    for name, path in caps.items():
+        link = raw / name
+        if not link.exists():
+            link.symlink_to(path.resolve(), target_is_directory=True)
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "snakemake", "--cores", str(cores), "--keep-going"],
+                          cwd=wd, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    (wd / "snakemake.log").write_text(proc.stdout + proc.stderr)
+    return wd, wall
+
+
+def _fmt(name: str, value: float) -> str:
+    if not math.isfinite(value):
+        return "    -   "
+    ok = meets(name, value)
+    return f"{value:7.3f}{' ' if ok else '*'}" if name.endswith(("px", "deg", "mm")) else \
+        f"{value:7.1f}{' ' if ok else '*'}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", default="0-19", help="seeds, e.g. 0-19 or 3,5,8")
+    ap.add_argument("--preset", default="random-small", help="random-small (default) or random")
+    ap.add_argument("--full", action="store_true", help="full captures instead of --quick ones")
+    ap.add_argument("--cores", type=int, default=2)
+    a = ap.parse_args(argv)
+    seeds: list[int] = []
+    for part in a.seeds.split(","):
+        lo, _, hi = part.partition("-")
+        seeds += list(range(int(lo), int(hi or lo) + 1))
+    caps = render(seeds, quick=not a.full, preset=a.preset)
+    wd, wall = run_workflow(caps, a.cores)
+    rows: dict[str, dict[str, Any]] = {}
+    for name, path in caps.items():
+        rig = yaml.safe_load((path / "rig.yaml").read_text())
+        mpath = wd / "reports" / name / "metrics.json"
+        row: dict[str, Any] = {"rig": rig.get("description")}
+        if mpath.is_file():
+            row["figures"] = figures(json.loads(mpath.read_text()), rig)
+            row["result"] = json.loads(mpath.read_text()).get("result")
+        else:
+            row["figures"] = {k: math.nan for k in TARGETS}
+            logs = sorted((wd / "logs" / name).rglob("*.log")) if (wd / "logs" / name).is_dir() else []
+            failed = [p for p in logs if "rror" in p.read_text(errors="replace")]
+            row["error"] = (failed[0].read_text(errors="replace").strip().splitlines() or ["?"])[-1] \
+                if failed else "no report (see snakemake.log)"
+        row["meets"] = {k: meets(k, row["figures"].get(k, math.nan)) for k in TARGETS}
+        rows[name] = row
+    kind = "full" if a.full else "quick"
+    lines = [f"{len(caps)} rigs of --preset {a.preset} ({kind} captures), workflow wall "
+             f"{wall:.0f} s on {a.cores} cores; * = target missed, - = not measured",
+             "targets: " + ", ".join(f"{k} {h} {t:g}" for k, (t, h) in TARGETS.items()),
+             "rig          " + " ".join(f"{k[:8]:>8}" for k in TARGETS)]
+    all_ok = 0
+    for name, row in rows.items():
+        f = row["figures"]
+        lines.append(f"{name:<12} " + " ".join(_fmt(k, f.get(k, math.nan)) for k in TARGETS)
+                     + (f"  ERROR {row['error']}" if "error" in row else ""))
+        if all(v is not False for v in row["meets"].values()) and "error" not in row:
+            all_ok += 1
+    per = {k: sum(1 for r in rows.values() if r["meets"][k]) for k in TARGETS}
+    measured = {k: sum(1 for r in rows.values() if r["meets"][k] is not None) for k in TARGETS}
+    lines.append("met          " + " ".join(f"{per[k]:>4}/{measured[k]:<3}" for k in TARGETS))
+    lines.append(f"rigs meeting every target they measure: {all_ok} of {len(rows)}")
+    text = "\n".join(lines)
+    print(text)
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "rigs.txt").write_text(text + "\n")
+    (RESULTS / "rigs.json").write_text(json.dumps({"wall_s": wall, "rows": rows}, indent=1,
+                                                  default=str) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
