@@ -170,9 +170,9 @@ def main(argv: list[str] | None = None) -> int:
         else:
             row["figures"] = {k: math.nan for k in TARGETS}
             logs = sorted((wd / "logs" / name).rglob("*.log")) if (wd / "logs" / name).is_dir() else []
-            failed = [p for p in logs if "rror" in p.read_text(errors="replace")]
-            row["error"] = (failed[0].read_text(errors="replace").strip().splitlines() or ["?"])[-1] \
-                if failed else "no report (see snakemake.log)"
+            errors = [ln for p in logs for ln in p.read_text(errors="replace").splitlines()
+                      if ": error:" in ln]
+            row["error"] = errors[0] if errors else "no report (see snakemake.log)"
         row["meets"] = {k: meets(k, row["figures"].get(k, math.nan)) for k in TARGETS}
         rows[name] = row
     kind = "full" if a.full else "quick"
