@@ -18,6 +18,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -113,6 +114,9 @@ def test_full_run_outputs(done_workdir: Path) -> None:
         assert (wd / f"data/interim/q/points/{s}.parquet").is_file()
         assert (wd / f"data/processed/q/{s}.ply").is_file()
     assert (wd / "reports/q/accuracy.pdf").read_bytes().startswith(b"%PDF")
+    # a full capture gets the calibration certificate too
+    assert (wd / "reports/q/calibration.pdf").read_bytes().startswith(b"%PDF")
+    assert json.loads((wd / "reports/q/calibration.json").read_text())["handeye"]
     assert planned_jobs(wd) == {}
 
 
@@ -146,6 +150,7 @@ def test_changing_camera_option_reruns_all_that_uses_the_camera(
     assert jobs == {
         "calibrate_camera": 1, "calibrate_lasers": 1, "calibrate_handeye": 1,
         "triangulate_points": n, "fuse_points": n, "render_report": 1,
+        "calibration_certificate": 1,
     }
 
 
@@ -160,13 +165,20 @@ def test_editing_a_module_reruns_its_stages(done_workdir: Path, tmp_path: Path) 
     assert jobs == {
         "calibrate_lasers": 1, "extract_stripes": n, "gather_stripes": n,
         "triangulate_points": n, "fuse_points": n, "render_report": 1,
+        "calibration_certificate": 1,
     }
-    # the report module is imported by the report alone
+    # the report module is imported by the two reports alone (the certificate shares its
+    # calibration summary), the certificate's pages by the certificate alone
     wd2 = tmp_path / "copy2"
     shutil.copytree(done_workdir, wd2, symlinks=True)
     report = wd2 / "crossline" / "report" / "accuracy.py"
     report.write_text(report.read_text() + "\n# an edit\n")
-    assert planned_jobs(wd2) == {"render_report": 1}
+    assert planned_jobs(wd2) == {"render_report": 1, "calibration_certificate": 1}
+    wd3 = tmp_path / "copy3"
+    shutil.copytree(done_workdir, wd3, symlinks=True)
+    pages = wd3 / "crossline" / "report" / "certificate_pages.py"
+    pages.write_text(pages.read_text() + "\n# an edit\n")
+    assert planned_jobs(wd3) == {"calibration_certificate": 1}
 
 
 def test_deterministic_across_runs_and_cores(done_workdir: Path, tmp_path: Path) -> None:
@@ -320,3 +332,140 @@ def test_config_value_out_of_range_names_the_key(tmp_path: Path) -> None:
     text = proc.stdout + proc.stderr
     assert proc.returncode != 0
     assert "threshold_px" in text and "-3" in text and "exclusiveMinimum" in text
+
+
+# ----------------------------------------------------------------------------- partial captures
+
+
+def _rig_without(rig: Path, dest: Path, *, scans: list[str] | None = None,
+                 lasers: list[str] | None = None) -> None:
+    """rig.yaml of ``rig`` with only ``scans`` (none: no scans key) and, if given, ``lasers``."""
+    data = yaml.safe_load(rig.read_text())
+    if scans is None:
+        data.pop("scans", None)
+    else:
+        data["scans"] = {k: v for k, v in data["scans"].items() if k in scans}
+    if lasers is not None:
+        data["lasers"] = lasers
+    (dest / "rig.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+
+
+def calibration_only(good: Path, dest: Path) -> Path:
+    """The capture's calibration views alone: no scans/ and no scans in rig.yaml."""
+    dest.mkdir(parents=True)
+    shutil.copytree(good / "calibration", dest / "calibration", copy_function=os.link)
+    shutil.copy(good / "truth.json", dest)
+    _rig_without(good / "rig.yaml", dest)
+    return dest
+
+
+def without_handeye(good: Path, dest: Path) -> Path:
+    """Camera and laser views, scans, but no hand-eye views: the scans cannot be measured."""
+    shutil.copytree(good, dest, copy_function=os.link,
+                    ignore=lambda d, names: ["handeye"] if Path(d).name == "calibration" else [])
+    return dest
+
+
+def one_laser(good: Path, dest: Path, scans: tuple[str, ...] = ("gauge", "plate", "ball")) -> Path:
+    """A one-line rig's capture from a two-laser one: laser A's views and its frames alone.
+
+    A frame lit by laser A alone is what a rig with laser A only records; its arm pose and
+    time stay, so each scan keeps every third frame of the pattern A, B, AB.
+    """
+    dest.mkdir(parents=True)
+    cal = dest / "calibration"
+    shutil.copytree(good / "calibration", cal, copy_function=os.link,
+                    ignore=lambda d, names: [n for n in names if n.startswith("laser_B")])
+    shutil.copy(good / "truth.json", dest)
+    for s in scans:
+        src, out = good / "scans" / s, dest / "scans" / s
+        (out / "frames").mkdir(parents=True)
+        rows = (src / "frames.csv").read_text().splitlines()
+        kept = [r for r in rows[1:] if r.split(",")[2] == "A"]
+        assert kept and len(kept) < len(rows) - 1
+        (out / "frames.csv").write_text("\n".join([rows[0], *kept]) + "\n")
+        for r in kept:
+            name = f"{int(r.split(',')[0]):06d}.png"
+            os.link(src / "frames" / name, out / "frames" / name)
+    _rig_without(good / "rig.yaml", dest, scans=list(scans), lasers=["A"])
+    return dest
+
+
+@pytest.fixture(scope="module")
+def partial_workdir(tmp_path_factory, quick_capture: Path) -> Path:
+    """One plain `snakemake` over a calibration-only, a hand-eye-less and a one-laser capture."""
+    root = tmp_path_factory.mktemp("partial")
+    caps = {"cal": calibration_only(quick_capture, root / "raw" / "cal"),
+            "nohe": without_handeye(quick_capture, root / "raw" / "nohe"),
+            "one": one_laser(quick_capture, root / "raw" / "one")}
+    wd = make_workdir(root / "run", caps)
+    proc = snakemake(wd)
+    (wd / "snakemake.out").write_text(proc.stdout + proc.stderr)
+    return wd
+
+
+def test_calibration_only_capture_gets_its_certificate(partial_workdir: Path) -> None:
+    wd = partial_workdir
+    check = json.loads((wd / "data/interim/cal/check.json").read_text())
+    assert check["stages"]["scans"]["allowed"] is False
+    cert = json.loads((wd / "reports/cal/calibration.json").read_text())
+    assert (wd / "reports/cal/calibration.pdf").read_bytes().startswith(b"%PDF")
+    assert not (wd / "reports/cal/accuracy.pdf").exists()
+    # no scan stage ran, and the run said why not
+    assert not (wd / "logs/cal/extract_stripes").exists()
+    assert not (wd / "data/interim/cal/points").exists()
+    assert "capture cal: scans not run: rig.yaml describes no scans" in (
+        wd / "snakemake.out").read_text()
+    # every calibration with its figures, each check against its limit
+    ids = {r["id"]: r for r in cert["checks"]}
+    for key in ("camera_rms_px", "camera_view_rms_px", "projection_rms_px", "coverage_share",
+                "laser_A_rms_mm", "laser_B_rms_mm", "handeye_consistency_mm"):
+        assert ids[key]["status"] in ("PASS", "FAIL"), key
+    assert cert["result"] == ("FAIL" if any(r["status"] == "FAIL" for r in cert["checks"])
+                              else "PASS")
+    cam = json.loads((wd / "data/interim/cal/calibration/camera.json").read_text())
+    sigma = {p["name"]: p["sigma"] for p in cert["camera"]["parameters"]}
+    assert sigma["fx"] == pytest.approx(cam["uncertainty"]["std"]["fx"])
+    # the coverage counts every used view's board points once
+    cov = cert["camera"]["coverage"]
+    n_points = sum(len(r) for r in cam["residuals"].values())
+    assert cov["points"] == n_points == int(np.sum(cov["counts"]))
+    assert 0 < cov["share"] <= 1
+    assert [p["pose"] for p in cert["lasers"]["A"]["poses"]]
+    assert cert["handeye"]["board_consistency_mm"] > 0
+
+
+def test_capture_without_handeye_calibrates_camera_and_lasers_only(partial_workdir: Path) -> None:
+    wd = partial_workdir
+    cal = wd / "data/interim/nohe/calibration"
+    assert (cal / "camera.json").is_file() and (cal / "lasers.json").is_file()
+    assert not (cal / "handeye.json").exists()
+    assert not (wd / "reports/nohe/accuracy.pdf").exists()
+    cert = json.loads((wd / "reports/nohe/calibration.json").read_text())
+    assert cert["handeye"] is None and "calibration/handeye" in cert["handeye_missing"]
+    assert "handeye_consistency_mm" not in {r["id"] for r in cert["checks"]}
+    # the camera took no hand-eye views: none exist
+    views = json.loads((cal / "camera.json").read_text())["views"]
+    assert not [v for v in views if "handeye" in v["image"]]
+
+
+def test_one_laser_capture_through_to_the_report(partial_workdir: Path) -> None:
+    wd = partial_workdir
+    lasers = json.loads((wd / "data/interim/one/calibration/lasers.json").read_text())
+    assert "A" in lasers and "B" not in lasers
+    metrics = json.loads((wd / "reports/one/metrics.json").read_text())
+    assert (wd / "reports/one/accuracy.pdf").read_bytes().startswith(b"%PDF")
+    assert (wd / "reports/one/calibration.pdf").is_file()
+    for s in ("gauge", "plate", "ball"):
+        tri = json.loads((wd / f"data/interim/one/points/{s}.json").read_text())
+        assert tri["lasers"] == ["A"] and "B" not in tri["counts"]["labelled"]
+        assert tri["counts"]["labelled"]["A"] == tri["points"] + sum(tri["counts"]["trimmed"].values())
+        fused = json.loads((wd / f"data/processed/one/{s}.fuse.json").read_text())
+        assert "needs stripes of both lasers" in fused["refine"]["skipped"]
+        sc = metrics["scans"][s]
+        assert "a_vs_b" not in sc or sc["a_vs_b"] is None
+        assert "no laser B" in sc["a_vs_b_note"]
+        assert set(sc["counts"]["points_by_laser"]) == {"A"}
+    ids = {r["id"] for r in metrics["summary"]}
+    assert "ab_height_difference_mm" not in ids and "ab_diameter_difference_mm" not in ids
+    assert "gauge_mean_error_mm" in ids
