@@ -37,10 +37,10 @@ RULE_HEAD = re.compile(r"^(local)?(rule|checkpoint) (\w+):$")
 SACCT_FIELDS = "JobID,Comment%70,State,ExitCode,Elapsed,AllocCPUS,ReqMem,Timelimit,Partition,Account"
 
 
-def snapshot(dest: Path, tree: bool) -> None:
-    """Copy the committed sources (HEAD), or with tree the working tree's, to dest."""
+def snapshot(dest: Path, tree: bool, rev: str = "HEAD") -> None:
+    """Copy the sources committed at rev, or with tree the working tree's, to dest."""
     if not tree:
-        archive = subprocess.run(["git", "archive", "HEAD"], cwd=REPO, check=True, capture_output=True)
+        archive = subprocess.run(["git", "archive", rev], cwd=REPO, check=True, capture_output=True)
         subprocess.run(["tar", "-x", "-C", str(dest)], input=archive.stdout, check=True)
         for top in ARTEFACT_DIRS:
             shutil.rmtree(dest / top, ignore_errors=True)
@@ -124,6 +124,7 @@ def main() -> int:
         action="store_true",
         help="run the working tree's sources (uncommitted edits included) instead of HEAD",
     )
+    parser.add_argument("--rev", default="HEAD", help="the commit whose sources run (default HEAD)")
     args = parser.parse_args()
 
     work = Path(os.environ.get("CROSSLINE_SLURM_WORK", "/tmp/crossline-slurm")) / args.capture
@@ -131,7 +132,7 @@ def main() -> int:
     if work.exists():
         shutil.rmtree(work)
     src.mkdir(parents=True)
-    snapshot(src, args.tree)
+    snapshot(src, args.tree, args.rev)
     env = dict(
         os.environ,
         PYTHONPATH=os.pathsep.join(
