@@ -5,21 +5,21 @@
 # local run. docs/cluster.md tells the story and what a run printed.
 #
 #   cluster/local-slurm.sh install      packages, configs, daemons, account, plugin (idempotent)
-#   cluster/local-slurm.sh run [quick|demo] [--tree]   install, then the workflow locally and
-#                                        on Slurm, and the two checks (default: quick; HEAD's
-#                                        sources, or the working tree's with --tree)
+#   cluster/local-slurm.sh run [quick|demo] [--rev COMMIT | --tree]   install, then the
+#                                        workflow locally and on Slurm, and the two checks
+#                                        (default: quick, HEAD's sources; --tree: the working tree)
 #   cluster/local-slurm.sh status       sinfo, squeue and the daemons' pids
 #   cluster/local-slurm.sh stop         stop the daemons this script started (pid files)
 #
 # Environment: CROSSLINE_SLURM_WORK (default /tmp/crossline-slurm) holds the working copies;
-# SLURM_PARTITION / SLURM_ACCOUNT name the local cluster's partition and account (the
+# CROSSLINE_SLURM_PARTITION / _ACCOUNT name the local cluster's partition and account (the
 # defaults match profiles/slurm/config.yaml).
 set -euo pipefail
 
 REPO=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 CLUSTER_NAME=crossline
-PARTITION=${SLURM_PARTITION:-main}
-ACCOUNT=${SLURM_ACCOUNT:-crossline}
+PARTITION=${CROSSLINE_SLURM_PARTITION:-main}
+ACCOUNT=${CROSSLINE_SLURM_ACCOUNT:-crossline}
 WORK_ROOT=${CROSSLINE_SLURM_WORK:-/tmp/crossline-slurm}
 ETC=/etc/slurm
 RUN=/run/slurm
