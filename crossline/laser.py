@@ -62,39 +62,64 @@ class LaserPlane:
 
 @dataclass(frozen=True)
 class LaserPlanes:
-    """The planes of lasers A and B, as stored in ``lasers.json``."""
+    """The planes of a rig's lasers, as stored in ``lasers.json``: A, and B on a two-line rig.
+
+    A one-line rig (``rig.yaml`` ``lasers: [A]``) has ``B = None``; the angle between the
+    planes and their crossing line exist only where there are two.
+    """
 
     A: LaserPlane
-    B: LaserPlane
+    B: LaserPlane | None = None
     extra: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
 
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The lasers held: ("A",) or ("A", "B")."""
+        return ("A",) if self.B is None else LASERS
+
     def __getitem__(self, laser: str) -> LaserPlane:
-        if laser not in LASERS:
-            raise KeyError(f"unknown laser {laser!r}; expected one of {LASERS}")
+        if laser not in self.names:
+            raise KeyError(f"unknown laser {laser!r}; this calibration has {list(self.names)}")
         return getattr(self, laser)
+
+    def __contains__(self, laser: object) -> bool:
+        return laser in self.names
 
     def angle_deg(self) -> float:
         """Angle between the two planes in degrees (90 for a perfect cross)."""
+        if self.B is None:
+            raise ValueError("one laser plane: there is no angle between planes")
         return float(np.degrees(angle_between(self.A.normal, self.B.normal)))
 
     def intersection_line(self) -> tuple[np.ndarray, np.ndarray]:
-        """The planes' line of intersection in the camera frame: a point and a unit direction."""
+        """The planes' line of intersection in the camera frame: a point and a unit direction.
+
+        Raises ValueError with one plane, or with two parallel planes.
+        """
+        if self.B is None:
+            raise ValueError("one laser plane: there is no crossing line")
         return plane_line_intersection(self.A.normal, self.A.d, self.B.normal, self.B.d)
 
     def to_dict(self) -> dict[str, Any]:
-        """The ``lasers.json`` mapping."""
-        out: dict[str, Any] = {"A": self.A.to_dict(), "B": self.B.to_dict()}
-        p, u = self.intersection_line()
+        """The ``lasers.json`` mapping (two lasers: with their angle and crossing line)."""
+        out: dict[str, Any] = {k: self[k].to_dict() for k in self.names}
         out.update(self.extra)
-        out.setdefault("angle_AB_deg", self.angle_deg())
-        out.setdefault("intersection_line", {"point": p.tolist(), "direction": u.tolist()})
+        if self.B is not None:
+            out.setdefault("angle_AB_deg", self.angle_deg())
+            try:
+                p, u = self.intersection_line()
+            except ValueError:  # parallel planes: no line to write
+                pass
+            else:
+                out.setdefault("intersection_line", {"point": p.tolist(), "direction": u.tolist()})
         return out
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> LaserPlanes:
-        """Planes from a ``lasers.json`` mapping."""
+        """Planes from a ``lasers.json`` mapping (``A``, and ``B`` if the rig has two lasers)."""
         extra = {k: v for k, v in data.items() if k not in LASERS}
-        return cls(LaserPlane.from_dict(data["A"]), LaserPlane.from_dict(data["B"]), extra)
+        b = LaserPlane.from_dict(data["B"]) if "B" in data else None
+        return cls(LaserPlane.from_dict(data["A"]), b, extra)
 
     def save(self, path: str | Path) -> None:
         """Write ``lasers.json`` atomically."""

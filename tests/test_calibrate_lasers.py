@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -195,3 +197,50 @@ def test_robust_plane_is_not_taken_by_the_largest_pose() -> None:
         nf, df = -nf, -df
     assert np.degrees(angle_between(nf, n)) < 0.01 and abs(df - d) < 0.005
     assert inl.mean() > 0.95
+
+
+# ----------------------------------------------------------------------------- one or two lasers, any board
+
+
+def test_laser_planes_one_or_two(tmp_path) -> None:
+    """lasers.json holds one plane (a one-line rig: no angle, no crossing line) or two (with
+    both); two parallel planes are written without a line instead of failing."""
+    from crossline.laser import LaserPlane, LaserPlanes
+
+    a = LaserPlane(N_TRUE, D_TRUE)
+    one = LaserPlanes(a)
+    one.save(tmp_path / "one.json")
+    back = LaserPlanes.load(tmp_path / "one.json")
+    data = json.loads((tmp_path / "one.json").read_text())
+    assert back.names == ("A",) and "B" not in data and "intersection_line" not in data
+    assert np.allclose(back["A"].normal, N_TRUE) and "B" not in back
+    with pytest.raises(KeyError, match="has \\['A'\\]"):
+        back["B"]
+    with pytest.raises(ValueError, match="one laser plane"):
+        one.intersection_line()
+    b = LaserPlane(np.array([0.6, -0.3, 0.74]), -80.0)
+    two = LaserPlanes(a, b)
+    d2 = two.to_dict()
+    assert d2["angle_AB_deg"] == pytest.approx(np.degrees(angle_between(a.normal, b.normal)))
+    p, u = (np.array(d2["intersection_line"][k]) for k in ("point", "direction"))
+    assert abs(a.distance(p[None])[0]) < 1e-9 and abs(b.distance((p + 10 * u)[None])[0]) < 1e-9
+    par = LaserPlanes(a, LaserPlane(N_TRUE, D_TRUE + 5.0)).to_dict()
+    assert par["angle_AB_deg"] == pytest.approx(0.0, abs=1e-6) and "intersection_line" not in par
+
+
+def _true_camera(cap, tmp_path):
+    truth = json.loads((cap / "truth.json").read_text())
+    cam = Camera(np.array(truth["camera"]["K"]), np.array(truth["camera"]["dist"]),
+                 tuple(truth["camera"]["image_size"]))
+    cam.save(tmp_path / "camera.json")
+    return truth, tmp_path / "camera.json"
+
+
+def _score(planes, truth) -> None:
+    for laser in planes.names:
+        n_t, d_t = np.array(truth["lasers"][laser]["normal"]), truth["lasers"][laser]["d"]
+        n, d = planes[laser].normal, planes[laser].d
+        if n @ n_t < 0:
+            n, d = -n, -d
+        assert np.degrees(angle_between(n, n_t)) < 0.005, laser
+        assert abs(d - d_t) < 0.01, laser

@@ -31,10 +31,10 @@ import cv2
 import numpy as np
 
 from crossline.board import Board
-from crossline.calibrate.detect import detect_board
+from crossline.calibrate.detect import detect_board, to_uint8
 from crossline.calibrate.pose import board_pose
 from crossline.camera import Camera
-from crossline.errors import CalibrationError
+from crossline.errors import CalibrationError, CrosslineError
 from crossline.geometry import fit_plane, plane_distance
 from crossline.laser import LASERS, LaserPlane, LaserPlanes
 
@@ -51,6 +51,9 @@ log = logging.getLogger(__name__)
 
 MIN_CENTRES = 20  # fewer stripe centres on the board than this: no stripe
 PAD_PX = 3  # how far the grey-centre window reaches beyond the run above threshold
+MIN_POSES = 2  # usable poses per laser: one pose's stripe is a line, two span the plane
+NOISE_K = 8.0  # the stripe stands this many noise sigmas above the laser-minus-board difference
+STRIPE_OPEN_FRACTION = 0.012  # laser always on: the opening that removes the stripe, x sensor size
 
 
 @dataclass(frozen=True)
@@ -131,10 +134,59 @@ def _board_area(camera: Camera, T_cam_board: np.ndarray, board: Board, shape: tu
 
 
 def _light_mask(board_image: np.ndarray) -> np.ndarray:
-    """The board image's light albedo class (Otsu's threshold on the lasers-off image)."""
-    img8 = board_image if board_image.dtype == np.uint8 else (board_image >> 8).astype(np.uint8)
-    _, mask = cv2.threshold(img8, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    """The board image's light albedo class (Otsu's threshold on the lasers-off image, stretched
+    between its own percentiles: the data's range, not the container's)."""
+    _, mask = cv2.threshold(to_uint8(board_image), 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
     return mask.astype(bool)
+
+
+def _robust_noise(x: np.ndarray) -> float:
+    """Robust sigma of a sample: 1.4826 MAD, or the RMS within 5 of it where the data are
+    quantised to a fraction of a count (MAD 0); at least sqrt(1/12)."""
+    x = np.asarray(x, dtype=np.float64).ravel()
+    d = x - np.median(x)
+    mad = 1.4826 * float(np.median(np.abs(d)))
+    near = d[np.abs(d) <= 5.0 * max(mad, 1.0)]
+    rms = float(np.sqrt(np.mean(near**2))) if near.size else 0.0
+    return max(mad, rms, float(np.sqrt(1.0 / 12.0)))
+
+
+def remove_stripe(laser_image: np.ndarray, kernel_px: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The laser image without its stripe, for a pose with the laser always on, and the mask.
+
+    A grey opening with a disc wider than the stripe (``kernel_px``, default
+    ``STRIPE_OPEN_FRACTION`` of the sensor's long side) removes every bright structure narrower
+    than the disc: the stripe, not the board's squares or circles. The stripe is where the
+    image stands above its opening by ``NOISE_K`` noise sigmas and a tenth of the stripe's own
+    level, on components that are long (a tenth of the image's short side); only those pixels
+    (grown by the stripe's width, for its tails) are replaced by the opening. The result
+    stands in for the lasers-off image: the board is found in it, and laser minus it is the
+    stripe.
+    """
+    img = np.asarray(laser_image)
+    h, w = img.shape
+    k = kernel_px or max(15, round(STRIPE_OPEN_FRACTION * max(h, w)) | 1)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+    opened = cv2.morphologyEx(img, cv2.MORPH_OPEN, disc)
+    top = img.astype(np.float32) - opened.astype(np.float32)
+    sub = top[::5, ::5]
+    noise = _robust_noise(sub)
+    level = float(np.quantile(top, 0.999)) if top.size else 0.0
+    thr = max(NOISE_K * noise, 0.1 * level)
+    cand = (top > thr).astype(np.uint8)
+    _n, lab, stats, _ = cv2.connectedComponentsWithStats(cand, connectivity=8)
+    length = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
+    long_ = length >= 0.1 * min(h, w)
+    long_[0] = False
+    mask = long_[lab].astype(np.uint8)
+    if long_.any():
+        # the stripe's tails reach beyond the pixels above a tenth of its level: grow the mask
+        # by the stripe's own width (its area over its length), 2 px at least
+        width = float(np.max(stats[long_, cv2.CC_STAT_AREA] / length[long_]))
+        g = 2 * max(2, round(width)) + 1
+        mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (g, g)))
+    mask = mask.astype(bool)
+    return np.where(mask, opened, img).astype(img.dtype), mask
 
 
 def _peak(diff: np.ndarray, k: int = 400) -> float:
@@ -163,35 +215,47 @@ def _stripe_axis(diff: np.ndarray, thr: float, keep) -> str:
 def stripe_points(
     camera: Camera,
     board: Board,
-    board_image: np.ndarray,
+    board_image: np.ndarray | None,
     laser_image: np.ndarray,
     *,
     threshold: float = 0.2,
     margin_px: float = 4.0,
     bias_correction: bool = True,
     name: str = "laser image",
+    detect_image: np.ndarray | None = None,
 ) -> PoseStripe:
     """Stripe points on the board plane (camera frame) of one pose; see the module docstring.
 
     ``threshold`` is a fraction of the stripe's peak level in laser-on minus lasers-off.
-    Raises :class:`CalibrationError` naming ``name`` when no stripe lies on the board.
+    ``board_image`` None: the laser was always on; the board is found in the laser image with
+    its stripe removed (:func:`remove_stripe`), which stands in for the lasers-off image.
+    ``detect_image`` (default: the lasers-off image) is the image the board is found in, e.g.
+    a colour channel that shows the board better than the laser's. Raises
+    :class:`CalibrationError` naming ``name`` when the board or the stripe on it is not found.
     """
     from crossline.scan.stripes import full_scale, grey_centre
 
-    det = detect_board(board_image, board)
+    full_scale(laser_image.dtype)  # unsigned integers only
+    where = "lasers-off image"
+    if board_image is None:
+        board_image, _ = remove_stripe(laser_image)
+        where = "laser image (laser always on; stripe removed)"
+        if detect_image is not None:
+            detect_image, _ = remove_stripe(detect_image)
+    det = detect_board(board_image if detect_image is None else detect_image, board)
     if not det.found:
-        raise CalibrationError(f"{name}: {det.reason} in the lasers-off image of this pose")
+        raise CalibrationError(f"{name}: {det.reason} in the {where} of this pose")
     pose = board_pose(camera, board, det.points, bias_correction=bias_correction)
     T = pose.T_cam_board
     n = T[:3, 2]
-    full = full_scale(laser_image.dtype)
     # laser-on minus the lasers-off image scaled to the laser image's exposure (calibration
     # laser images may be taken with a shorter exposure than the board views)
     a, b = ambient_model(board_image, laser_image)
     diff_f = laser_image.astype(np.float32) - (a * board_image.astype(np.float32) + b)
-    # grey_centre wants unsigned integers: keep 1/16 of a count of resolution
-    diff = np.clip(np.round(diff_f * 16.0), 0, 65535).astype(np.uint16)
-    full16 = 65535.0
+    # grey_centre wants unsigned integers: keep 1/16 of a count of resolution where the data
+    # leave room for it (up to 12 bits), less for wider data
+    scale = float(min(16.0, 65535.0 / max(float(diff_f.max()), 1.0)))
+    diff = np.clip(np.round(diff_f * scale), 0, 65535).astype(np.uint16)
 
     def clearance_px(uv: np.ndarray) -> np.ndarray:
         r = camera.rays(uv)
@@ -203,9 +267,9 @@ def stripe_points(
         mm_px = np.abs(lam) / camera.fx / np.maximum(cosi, 0.2)
         return edge_clearance(board, xy[:, :2]) / mm_px
 
-    sub = diff_f[::7, ::7]
-    noise = 16.0 * 1.4826 * float(np.median(np.abs(sub - np.median(sub))))
-    floor = max(8.0 * noise, 0.02 * full * 16.0)
+    # the difference's own noise sets the floor: the stripe stands NOISE_K sigmas above it
+    noise = scale * _robust_noise(diff_f[::7, ::7])
+    floor = NOISE_K * noise
     # The stripe's level differs by the albedo ratio (~10x) between the board's light and
     # dark areas: a threshold set by the brightest part would lose the stripe on the plate
     # of a light-circles board. Centres are taken on the plate (the circles' interiors add
@@ -223,18 +287,19 @@ def stripe_points(
     if peak <= floor and (anywhere := _peak(diff)) > floor:
         raise CalibrationError(
             f"{name}: no laser stripe on the board: the stripe (peak difference "
-            f"{anywhere / 16:.1f}) lies off the board's plate (there {peak / 16:.1f}, needs "
-            f"> {floor / 16:.1f})"
+            f"{anywhere / scale:.1f}) lies off the board's plate (there {peak / scale:.1f}, needs "
+            f"> {floor / scale:.1f}: {NOISE_K:g} noise sigmas)"
         )
     if peak <= floor:
         raise CalibrationError(
             f"{name}: no laser stripe on the board: the laser-on image is no brighter than the "
-            f"lasers-off image (peak difference {peak / 16:.1f}, needs > {floor / 16:.1f})"
+            f"lasers-off image (peak difference {peak / scale:.1f}, needs > {floor / scale:.1f}: "
+            f"{NOISE_K:g} noise sigmas)"
         )
     thr = max(threshold * peak, floor * 0.5)
     axis = _stripe_axis(dm, thr, lambda uv: clearance_px(uv) > 0)
     img = dm if axis == "column" else np.ascontiguousarray(dm.T)
-    c = grey_centre(img, threshold=thr / full16, min_width=2.0, max_width=80.0, pad=PAD_PX)
+    c = grey_centre(img, min_width=2.0, max_width=80.0, pad=PAD_PX, level=thr, data_max=65535.0)
     ok = (c["flags"] & ~np.uint8(4)) == 0  # saturation of the difference is harmless
     col, v, width = c["u"][ok], c["v"][ok], c["width"][ok]
     n_centres = int(ok.sum())
@@ -336,6 +401,40 @@ def robust_plane(
     return n, float(d), inl
 
 
+def _read_pose_images(view, shape, channel: str | None):
+    """(lasers-off image or None, laser image, detection image or None) of one pose.
+
+    Colour images: the stripe is measured on the laser's channel (``sensor.channel``, or the
+    channel where laser minus board is brightest); the board is found in the lasers-off
+    image's luminance, or with the laser always on in the other channel that shows the board
+    with most contrast and least stripe.
+    """
+    from crossline.io.images import read_image, read_image_channels
+
+    la = read_image_channels(view.laser_image)
+    if la.shape[:2] != tuple(shape):
+        raise CalibrationError(f"{view.laser_image}: image is {la.shape[1]}x{la.shape[0]} px, "
+                               f"expected {shape[1]}x{shape[0]} px")
+    b = None if view.board_image is None else read_image(view.board_image, shape)
+    if la.shape[2] == 1:
+        return b, la[:, :, 0], None
+    names = ("red", "green", "blue")
+    bc = None if view.board_image is None else read_image_channels(view.board_image)
+    if channel in names:
+        k = names.index(channel)
+    else:  # auto: the channel the stripe is brightest in, above the board or its opening
+        score = []
+        for j in range(3):
+            ref = bc[:, :, j] if bc is not None and bc.shape[2] == 3 else remove_stripe(la[:, :, j])[0]
+            score.append(float(np.quantile(la[:, :, j].astype(np.float32) - ref, 0.999)))
+        k = int(np.argmax(score))
+    if bc is None:  # laser always on: the board in the other channel that shows it best
+        best = max((j for j in range(3) if j != k), key=lambda j: float(np.std(la[::4, ::4, j])))
+        return None, la[:, :, k], la[:, :, best]
+    b = bc[:, :, k] if bc.shape[2] == 3 else bc[:, :, 0]
+    return b, la[:, :, k], read_image(view.board_image, shape)
+
+
 def run_calibrate_lasers(
     capture: str | Path,
     camera_json: str | Path,
@@ -346,31 +445,53 @@ def run_calibrate_lasers(
     threads: int = 1,
     margin_px: float = 4.0,
 ) -> LaserPlanes:
-    """Stage: fit the planes of lasers A and B and write ``lasers.json``."""
+    """Stage: fit the plane of each of the rig's lasers (A, or A and B) and write ``lasers.json``.
+
+    A pose that cannot be used (board not found, no stripe on it, unreadable image) is skipped
+    with its reason, listed in ``lasers.json`` and the log; the stage fails only when a laser
+    keeps fewer than ``MIN_POSES`` poses, naming every pose and why.
+    """
     from crossline.io.capture import open_capture
-    from crossline.io.images import read_image
 
     cv2.setNumThreads(1)  # parallelism comes from our pool of `threads` workers (determinism)
     cap = open_capture(capture)
     camera = Camera.load(camera_json)
     board = cap.rig.board
     shape = (cap.rig.sensor.height, cap.rig.sensor.width)
+    channel = getattr(cap.rig.sensor, "channel", None)
+    lasers = tuple(getattr(cap.rig, "lasers", LASERS))
 
-    def one(view) -> tuple[Any, PoseStripe]:
-        b = read_image(view.board_image, shape)
-        la = read_image(view.laser_image, shape)
+    def one(view) -> tuple[Any, PoseStripe | None, str]:
         name = str(view.laser_image.relative_to(cap.root))
-        return view, stripe_points(camera, board, b, la, threshold=threshold, margin_px=margin_px, name=name)
+        try:
+            b, la, det = _read_pose_images(view, shape, channel)
+            s = stripe_points(camera, board, b, la, threshold=threshold, margin_px=margin_px,
+                              name=name, detect_image=det)
+        except CrosslineError as exc:
+            return view, None, str(exc)
+        return view, s, ""
 
-    jobs = [v for laser in LASERS for v in cap.laser_views[laser]]
+    jobs = [v for laser in lasers for v in cap.laser_views.get(laser, [])]
     if threads > 1:
         with ThreadPoolExecutor(max_workers=threads) as pool:
             results = list(pool.map(one, jobs))
     else:
         results = [one(v) for v in jobs]
     planes = {}
-    for laser in LASERS:
-        mine = [(v, s) for v, s in results if v.laser == laser]
+    failures = []
+    for laser in lasers:
+        mine = [(v, s) for v, s, _ in results if v.laser == laser and s is not None]
+        skipped = [{"pose": v.pose, "laser_image": str(v.laser_image.relative_to(cap.root)), "reason": why}
+                   for v, s, why in results if v.laser == laser and s is None]
+        for k in skipped:
+            log.warning("laser %s: pose %s skipped: %s", laser, k["pose"], k["reason"])
+        if len(mine) < MIN_POSES:
+            used = [f"    - {v.pose}: usable, {len(s.points)} stripe points" for v, s in mine]
+            why = [f"    - {k['pose']}: {k['reason']}" for k in skipped]
+            n_views = len(cap.laser_views.get(laser, []))
+            failures.append(f"  laser {laser}: {len(mine)} usable pose{'s' * (len(mine) != 1)} of "
+                            f"{n_views}, at least {MIN_POSES} needed\n" + "\n".join(used + why))
+            continue
         pts = np.concatenate([s.points for _, s in mine])
         pose_of = np.concatenate([np.full(len(s.points), i) for i, (_, s) in enumerate(mine)])
         nrm, d, inl = robust_plane(pts, trim=trim, groups=pose_of)
@@ -382,7 +503,7 @@ def run_calibrate_lasers(
             r = plane_distance(s.points[sl], nrm, d)
             poses.append({
                 "pose": v.pose,
-                "board_image": str(v.board_image.relative_to(cap.root)),
+                "board_image": None if v.board_image is None else str(v.board_image.relative_to(cap.root)),
                 "laser_image": str(v.laser_image.relative_to(cap.root)),
                 "profiles": s.axis,
                 "n_centres": s.n_centres,
@@ -400,10 +521,17 @@ def run_calibrate_lasers(
             "n_used": int(inl.sum()),
             "n_rejected": int((~inl).sum()),
             "poses": poses,
+            "skipped_poses": skipped,
         })
-        log.info("laser %s: n = %s, d = %.4f mm, RMS %.4f mm over %d points (%d rejected)",
-                 laser, np.round(nrm, 6), d, planes[laser].extra["rms_mm"], inl.sum(), (~inl).sum())
-    result = LaserPlanes(planes["A"], planes["B"], {
+        log.info("laser %s: n = %s, d = %.4f mm, RMS %.4f mm over %d points (%d rejected), "
+                 "%d poses used, %d skipped", laser, np.round(nrm, 6), d, planes[laser].extra["rms_mm"],
+                 inl.sum(), (~inl).sum(), len(mine), len(skipped))
+    if not failures and "A" not in planes:
+        failures.append(f"  the rig's lasers {list(lasers)}: a one-laser rig names its laser A")
+    if failures:
+        raise CalibrationError(f"capture {cap.root}: laser planes cannot be calibrated:\n"
+                               + "\n".join(failures))
+    result = LaserPlanes(planes["A"], planes.get("B"), {
         "parameters": {"threshold": threshold, "trim": trim, "margin_px": margin_px},
     })
     result.save(out)
