@@ -231,6 +231,10 @@ def _calibrate_camera(p: argparse.ArgumentParser) -> None:
     p.add_argument("--views", choices=("camera", "all"), default="all",
                    help="board views to use: calibration/camera only, or all lasers-off board "
                         "views of the capture (default all)")
+    p.add_argument("--distortion", choices=("select", "full"), default="select",
+                   help="select: fix at 0 the distortion coefficients the views do not determine "
+                        "(the model with the lowest predicted projection error over the scan "
+                        "window, said in camera.json); full: estimate all five (default select)")
     _threads(p)
 
     def run(a: argparse.Namespace) -> int:
@@ -239,7 +243,7 @@ def _calibrate_camera(p: argparse.ArgumentParser) -> None:
         run_calibrate_camera(
             a.capture, a.out, bias_correction=a.bias_correction,
             outlier_factor=a.outlier_factor, min_views=a.min_views, threads=a.threads,
-            views=a.views,
+            views=a.views, distortion=a.distortion,
         )
         return 0
 

@@ -184,3 +184,154 @@ def test_predicted_projection_error_matches_cramer_rao_and_the_scatter() -> None
     rms_actual = float(np.sqrt(np.mean(np.square(actual))))
     assert abs(rms_actual - crb) < 0.25 * crb, (rms_actual, crb)
     assert abs(np.std(cx) - np.median(cx_std)) < 0.3 * np.median(cx_std)
+
+
+# ----------------------------------------------------------------------------- few views
+
+
+SCAN_WINDOW = (207, 624, 2658, 800)  # the paper rig's
+
+
+def _window_rms(est: Camera, true: Camera, window=SCAN_WINDOW) -> float:
+    """RMS difference (px) between the estimated and the true projection over a window."""
+    from crossline.calibrate.camera import grid_pixels
+
+    xy = true.undistort(grid_pixels(window, 41))
+    Q = np.column_stack([xy, np.ones(len(xy))])
+    return float(np.sqrt(np.mean(np.sum((est.project(Q) - true.project(Q)) ** 2, axis=1))))
+
+
+@pytest.mark.slow
+def test_undetermined_k3_is_fixed_and_the_prediction_stays_honest() -> None:
+    """Seven views of a small board near the image centre, a lens without k3: the free fit's
+    k3 is not determined (its predicted error over the sensor is several times the chosen
+    model's); model selection fixes it at 0, and the chosen model's predicted error over the
+    scan window matches the true error (RMS over draws)."""
+    from crossline.calibrate.camera import select_distortion, uncertainty_summary
+
+    true = Camera(PAPER.K, np.r_[PAPER.dist[:4], 0.0], PAPER.image_size)
+    board = Board.parse("asymmetric:7x13:2.5:1.5:light")
+    sensor = (0, 0, *PAPER.image_size)
+    pred, err, fixed = [], [], []
+    for seed in range(3):
+        poses = view_poses(board, 7, 150.0, max_tilt_deg=40.0, seed=seed, spread=0.1)
+        Pb = board.object_points()
+        exact = np.array([true.project(Pb @ T[:3, :3].T + T[:3, 3]) for T in poses])
+        pts = exact + np.random.default_rng(seed).normal(0.0, 0.01, exact.shape)
+        full = calibrate_camera(pts, board, PAPER.image_size, bias_correction=False)
+        fit, rows = select_distortion(pts, board, PAPER.image_size, full, SCAN_WINDOW, bias_correction=False)
+        assert [r["chosen"] for r in rows].count(True) == 1 and rows[0]["fixed"] == []
+        u = uncertainty_summary(fit, {"scan_window": SCAN_WINDOW, "sensor": sensor})
+        u_full = uncertainty_summary(full, {"sensor": sensor})
+        fixed.append("k3" in fit.fixed)
+        if fit.fixed:
+            assert fit.camera.dist[4] == 0.0 and fit.covariance[8, 8] == 0.0
+            assert u_full["projection_rms_px"]["sensor"] > 2.0 * u["projection_rms_px"]["sensor"]
+        pred.append(u["projection_rms_px"]["scan_window"])
+        err.append(_window_rms(fit.camera, true))
+    assert sum(fixed) >= 2, fixed
+    ratio = np.sqrt(np.mean(np.square(err))) / np.sqrt(np.mean(np.square(pred)))
+    assert 0.5 < ratio < 2.0, (err, pred)
+    assert all(0.25 < e / p < 4.0 for e, p in zip(err, pred, strict=True)), (err, pred)
+
+
+def _truth_camera(capture) -> Camera:
+    import json
+
+    t = json.loads((capture / "truth.json").read_text())["camera"]
+    return Camera(np.array(t["K"]), np.array(t["dist"]), tuple(t["image_size"]))
+
+
+@pytest.mark.slow
+def test_six_rendered_views_predict_their_own_error(quick_capture, tmp_path) -> None:
+    """A rendered capture cut down to 6 camera views: camera.json says which distortion
+    coefficients were estimated and why, and its predicted projection error over the scan
+    window is within a factor 2 of the true one."""
+    import json
+    import shutil
+
+    from crossline.calibrate.camera import run_calibrate_camera
+
+    cap = tmp_path / "capture"
+    shutil.copytree(quick_capture / "calibration" / "camera", cap / "calibration" / "camera")
+    shutil.copy(quick_capture / "rig.yaml", cap / "rig.yaml")
+    for p in sorted((cap / "calibration" / "camera").glob("*.png"))[6:]:
+        p.unlink()
+    cam = run_calibrate_camera(cap, tmp_path / "camera.json", views="camera", threads=2)
+    saved = json.loads((tmp_path / "camera.json").read_text())
+    dm = saved["distortion_model"]
+    assert saved["n_views_used"] == 6 and dm["selection"] == "select"
+    assert sorted(dm["free"] + list(dm["fixed"])) == sorted(["k1", "k2", "p1", "p2", "k3"])
+    assert dm["reason"] and len(dm["candidates"]) == 3 and sum(c["chosen"] for c in dm["candidates"]) == 1
+    true = _truth_camera(quick_capture)
+    pred = saved["uncertainty"]["projection_rms_px"]["scan_window"]
+    err = _window_rms(cam, true)
+    assert 0.5 < err / pred < 2.0, (err, pred)
+
+
+# ----------------------------------------------------------------------------- light circles
+
+
+def _bias_slope(capture, board: Board, views: int = 4) -> tuple[float, float]:
+    """Detected circle centres of the first camera views against the true projections: the
+    least-squares factor of the detected shifts over the predicted perspective bias, and the
+    RMS (px) of what the bias model leaves."""
+    import json
+
+    from crossline.calibrate.detect import board_symmetries, detect_board
+    from crossline.io.images import read_image
+
+    truth = json.loads((capture / "truth.json").read_text())
+    true = _truth_camera(capture)
+    Pb = board.object_points()
+    shift, off = [], []
+    for name, v in sorted(truth["calibration"]["camera"].items())[:views]:
+        det = detect_board(read_image(capture / "calibration" / "camera" / name), board)
+        assert det.found, name
+        T = np.array(v["T_cam_board"])
+        proj = true.project(Pb @ T[:3, :3].T + T[:3, 3])
+        o = centroid_offsets(true, board, matrix_to_rotvec(T[:3, :3]), T[:3, 3])
+        best = min(board_symmetries(board), key=lambda q: float(np.abs(det.points[q] - proj - o).mean()))
+        shift.append(det.points[best] - proj)
+        off.append(o)
+    s, o = np.concatenate(shift), np.concatenate(off)
+    return float(np.sum(s * o) / np.sum(o * o)), float(np.sqrt(np.mean(np.sum((s - o) ** 2, axis=1))))
+
+
+@pytest.mark.slow
+def test_light_circle_boards_follow_the_bias_model(quick_capture_compact) -> None:
+    """Light circles, asymmetric grid (the second preset's board) and symmetric grid (the paper
+    rig with light circles): the detected centres move by the predicted perspective bias
+    (factor 1 within 1 %), and what is left is noise-sized."""
+    from tests.conftest import render_cached
+
+    light = Board.parse("symmetric:15x11:3.75:1.875:light")
+    sym = render_cached("paper", seed=0, board=light, scans=["plate"], frames=1)  # as test_calibrate_lasers
+    for cap, board in ((quick_capture_compact, Board.parse("asymmetric:7x13:2.5:1.5:light")), (sym, light)):
+        slope, rest = _bias_slope(cap, board)
+        assert abs(slope - 1.0) < 0.01 and rest < 0.012, (cap.name, slope, rest)
+
+
+@pytest.mark.slow
+def test_light_asymmetric_board_camera_within_its_prediction(quick_capture_compact) -> None:
+    """The camera from the asymmetric grid of light circles (every lasers-off board view of the
+    second preset's quick capture), bias corrected: over the scan window within 1.5 x the
+    error the fit predicts for itself, and better than without the correction."""
+    from crossline.calibrate.camera import detect_views, uncertainty_summary
+    from crossline.io.capture import open_capture
+
+    cap = open_capture(quick_capture_compact)
+    sw = cap.rig.scan_window
+    window = (sw.x, sw.y, sw.width, sw.height)
+    size = (cap.rig.sensor.width, cap.rig.sensor.height)
+    paths = list(cap.camera_images) + list(cap.handeye_images)
+    paths += [v.board_image for laser in sorted(cap.laser_views) for v in cap.laser_views[laser]]
+    dets = detect_views(paths, cap.rig.board, (size[1], size[0]), threads=2)
+    names = [p.name for p in paths]
+    true = _truth_camera(quick_capture_compact)
+    fit, _, _ = solve_views(names, dets, cap.rig.board, size, window=window)
+    pred = uncertainty_summary(fit, {"scan_window": window})["projection_rms_px"]["scan_window"]
+    err = _window_rms(fit.camera, true, window)
+    assert err < 1.5 * pred, (err, pred)
+    off, _, _ = solve_views(names, dets, cap.rig.board, size, window=window, bias_correction=False)
+    assert err < _window_rms(off.camera, true, window), (err, _window_rms(off.camera, true, window))

@@ -8,6 +8,15 @@ are corrected iteratively: calibrate, predict for each circle the offset of its 
 centroid from the projection of its centre (:mod:`crossline.calibrate.bias`), subtract it
 from the measured centroids, calibrate again, until the offsets change by < ``bias_tol_px``.
 
+Distortion model. With few views, or views that leave the sensor's edges bare, a coefficient
+(k3 first, the term of highest order) may not be determined by the data: free, it makes the
+predicted projection error meaningless (tens of pixels at the corners). Such coefficients are
+fixed at 0 by model selection (:func:`select_distortion`): the radial models with k3, then k2
+and k3 held at 0 are fitted too, and the one with the lowest predicted projection error over
+the scan window wins, counting both its noise and the model error that fixing leaves
+(:func:`model_error`). camera.json says which coefficients were fixed and why, and its
+predicted error includes that model error.
+
 Views where the board is not found, or whose RMS residual exceeds ``outlier_factor`` times
 the median (and an absolute floor of ``OUTLIER_FLOOR_PX``), are skipped and listed with
 their reason; fewer than ``min_views`` usable views is a :class:`CalibrationError` that
@@ -18,7 +27,7 @@ from __future__ import annotations
 
 import logging
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +43,9 @@ from crossline.errors import CalibrationError
 from crossline.geometry import make_transform, matrix_to_rotvec, rotvec_to_matrix
 
 __all__ = [
+    "DISTORTION",
+    "DISTORTION_CHOICES",
+    "DISTORTION_MODELS",
     "OUTLIER_FLOOR_PX",
     "PARAMETERS",
     "VIEW_SETS",
@@ -42,8 +54,12 @@ __all__ = [
     "calibrate_camera",
     "detect_views",
     "grid_pixels",
+    "model_error",
     "projection_uncertainty",
+    "projection_variance",
     "run_calibrate_camera",
+    "select_distortion",
+    "solve_views",
     "uncertainty_summary",
 ]
 
@@ -52,6 +68,13 @@ log = logging.getLogger(__name__)
 # a view is never an outlier below this RMS (px): exact or very clean data has tiny medians
 OUTLIER_FLOOR_PX = 0.02
 VIEW_SETS = ("camera", "all")
+PARAMETERS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+DISTORTION = PARAMETERS[4:]
+# candidate distortion models, as the coefficients each holds at 0 (the first: all free): the
+# radial terms of highest order go first, as they need the widest field to be seen; the
+# tangential pair stays free (fixing it moves the principal point, never a small change)
+DISTORTION_MODELS: tuple[tuple[str, ...], ...] = ((), ("k3",), ("k2", "k3"))
+DISTORTION_CHOICES = ("select", "full")
 
 
 @dataclass(frozen=True)
@@ -63,21 +86,37 @@ class CameraFit:
     offsets: np.ndarray  # (V, N, 2) predicted perspective bias removed from the measurements
     residuals: np.ndarray  # (V, N, 2) corrected measurements minus projections
     bias_history: list[dict[str, float]] = field(default_factory=list)
-    normal: np.ndarray | None = None  # JᵀJ of the last bundle adjustment (9 + 6 V parameters)
+    normal: np.ndarray | None = None  # JᵀJ of the last bundle adjustment (free intrinsics, 6 V)
+    fixed: tuple[str, ...] = ()  # distortion coefficients held at 0 (names from PARAMETERS)
+    reference: CameraFit | None = None  # the fit with every coefficient free, when some are fixed
+    selection: list[dict[str, Any]] | None = None  # the candidate models (select_distortion)
+
+    @property
+    def free(self) -> np.ndarray:
+        """Indices into PARAMETERS of the intrinsics the fit estimated."""
+        return _free_indices(self.fixed)
 
     @property
     def sigma_px(self) -> float:
         """Residual standard deviation per image coordinate (px), degrees of freedom counted."""
         V, N = self.residuals.shape[:2]
-        dof = 2 * V * N - (9 + 6 * V)
+        dof = 2 * V * N - (len(self.free) + 6 * V)
         return float(np.sqrt(np.sum(self.residuals**2) / max(dof, 1)))
 
     @property
     def covariance(self) -> np.ndarray:
-        """Covariance (9, 9) of fx, fy, cx, cy, k1, k2, p1, p2, k3: sigma² (JᵀJ)⁻¹, poses marginalised."""
+        """Covariance (9, 9) of fx, fy, cx, cy, k1, k2, p1, p2, k3: sigma² (JᵀJ)⁻¹, poses
+        marginalised; rows and columns of fixed coefficients are zero."""
         if self.normal is None:
             raise ValueError("no normal matrix: the fit did not come from bundle_adjust")
-        return self.sigma_px**2 * np.linalg.inv(self.normal)[:9, :9]
+        fi = self.free
+        C = np.zeros((9, 9))
+        # inverted with Jacobi scaling: the parameters' units differ by many orders of magnitude
+        A = self.normal
+        d = 1.0 / np.sqrt(np.maximum(np.diag(A), 1e-300))
+        inv = d[:, None] * np.linalg.pinv(d[:, None] * A * d[None, :], hermitian=True) * d[None, :]
+        C[np.ix_(fi, fi)] = self.sigma_px**2 * inv[: fi.size, : fi.size]
+        return C
 
     @property
     def view_rms(self) -> np.ndarray:
@@ -102,77 +141,105 @@ def _project_views(params: np.ndarray, P: np.ndarray, V: int, image_size) -> np.
     return cam.project(pc)
 
 
+def _free_indices(fixed: tuple[str, ...] | list[str]) -> np.ndarray:
+    bad = set(fixed) - set(DISTORTION)
+    if bad:
+        raise ValueError(f"only distortion coefficients {DISTORTION} can be fixed, got {sorted(bad)}")
+    return np.array([k for k, n in enumerate(PARAMETERS) if n not in fixed])
+
+
 def bundle_adjust(
     board: Board,
     points: np.ndarray,
     camera: Camera,
     T_cam_board: np.ndarray,
+    fixed: tuple[str, ...] = (),
 ) -> tuple[Camera, np.ndarray, np.ndarray, np.ndarray]:
     """Refine intrinsics, distortion and every view's pose (float64 LM) on points (V, N, 2).
 
-    Returns the camera, the poses (V, 4, 4), the residuals (V, N, 2) and JᵀJ at the solution
-    (parameters fx, fy, cx, cy, the 5 distortion coefficients, then 6 per view).
+    The distortion coefficients named in ``fixed`` are held at 0. Returns the camera, the
+    poses (V, 4, 4), the residuals (V, N, 2) and JᵀJ at the solution (parameters: the free
+    ones of fx, fy, cx, cy, k1, k2, p1, p2, k3 in that order, then 6 per view).
     """
     P = board.object_points()
     V, N = points.shape[:2]
+    fi = _free_indices(fixed)
+    nf = fi.size
+    base = np.r_[camera.fx, camera.fy, camera.cx, camera.cy, camera.dist].astype(np.float64)
+    base[[k for k in range(9) if k not in fi]] = 0.0
     x0 = np.concatenate(
         [
-            [camera.fx, camera.fy, camera.cx, camera.cy],
-            camera.dist,
+            base[fi],
             np.concatenate([np.r_[matrix_to_rotvec(T[:3, :3]), T[:3, 3]] for T in T_cam_board]),
         ]
     )
     obs = np.asarray(points, dtype=np.float64)
 
-    def fun(x: np.ndarray) -> np.ndarray:
-        return (_project_views(x, P, V, camera.image_size) - obs).ravel()
+    def full(x: np.ndarray) -> np.ndarray:
+        p = np.empty(9 + 6 * V)
+        p[:9] = base
+        p[fi] = x[:nf]
+        p[9:] = x[nf:]
+        return p
 
-    steps = np.r_[[1e-4] * 4, [1e-8] * 5, [1e-8] * 3, [1e-6] * 3]
+    def fun(x: np.ndarray) -> np.ndarray:
+        return (_project_views(full(x), P, V, camera.image_size) - obs).ravel()
+
+    steps = np.r_[np.r_[[1e-4] * 4, [1e-8] * 5][fi], [1e-8] * 3, [1e-6] * 3]
 
     def normal(x: np.ndarray, f0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        # forward differences; a view's residuals depend on the 9 shared parameters and its
+        # forward differences; a view's residuals depend on the shared intrinsics and its
         # own 6 only, so one pose parameter of every view is perturbed at once, and JᵀJ is
         # assembled from the blocks (the dense Jacobian would be mostly zeros)
-        Ji = np.empty((V, 2 * N, 9))
-        for k in range(9):
+        Ji = np.empty((V, 2 * N, nf))
+        for k in range(nf):
             dx = np.zeros_like(x)
             dx[k] = steps[k]
             Ji[:, :, k] = ((fun(x + dx) - f0) / steps[k]).reshape(V, 2 * N)
         Jv = np.empty((V, 2 * N, 6))
         for m in range(6):
             dx = np.zeros_like(x)
-            dx[9 + m :: 6] = steps[9 + m]
-            Jv[:, :, m] = ((fun(x + dx) - f0) / steps[9 + m]).reshape(V, 2 * N)
+            dx[nf + m :: 6] = steps[nf + m]
+            Jv[:, :, m] = ((fun(x + dx) - f0) / steps[nf + m]).reshape(V, 2 * N)
         fv = f0.reshape(V, 2 * N)
         A = np.zeros((x.size, x.size))
         g = np.empty(x.size)
-        A[:9, :9] = np.einsum("vri,vrj->ij", Ji, Ji)
-        g[:9] = np.einsum("vri,vr->i", Ji, fv)
-        cross = np.einsum("vri,vrj->vij", Ji, Jv)  # (V, 9, 6)
+        A[:nf, :nf] = np.einsum("vri,vrj->ij", Ji, Ji)
+        g[:nf] = np.einsum("vri,vr->i", Ji, fv)
+        cross = np.einsum("vri,vrj->vij", Ji, Jv)  # (V, nf, 6)
         own = np.einsum("vri,vrj->vij", Jv, Jv)  # (V, 6, 6)
         gv = np.einsum("vri,vr->vi", Jv, fv)
         for v in range(V):
-            sl = slice(9 + 6 * v, 15 + 6 * v)
-            A[:9, sl] = cross[v]
-            A[sl, :9] = cross[v].T
+            sl = slice(nf + 6 * v, nf + 6 + 6 * v)
+            A[:nf, sl] = cross[v]
+            A[sl, :nf] = cross[v].T
             A[sl, sl] = own[v]
             g[sl] = gv[v]
         return A, g
 
     res = levenberg_marquardt(fun, normal, x0)
-    x = res.x
+    x = full(res.x)
     cam = Camera(np.array([[x[0], 0, x[2]], [0, x[1], x[3]], [0, 0, 1.0]]), x[4:9], camera.image_size)
     ext = x[9:].reshape(V, 6)
     T = make_transform(rotvec_to_matrix(ext[:, :3]), ext[:, 3:])
     return cam, T, res.fun.reshape(V, N, 2), res.normal
 
 
-def _zhang(board: Board, points: np.ndarray, image_size) -> tuple[Camera, np.ndarray]:
+def _zhang(
+    board: Board, points: np.ndarray, image_size, fixed: tuple[str, ...] = ()
+) -> tuple[Camera, np.ndarray]:
     """Zhang's method through ``cv2.calibrateCamera`` (5 coefficients, zero skew)."""
     obj = [board.object_points().astype(np.float32)] * len(points)
     img = [p.astype(np.float32) for p in points]
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-    _, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, tuple(image_size), None, None, criteria=crit)
+    flags = 0
+    for name, flag in (("k1", cv2.CALIB_FIX_K1), ("k2", cv2.CALIB_FIX_K2), ("k3", cv2.CALIB_FIX_K3)):
+        if name in fixed:
+            flags |= flag
+    if "p1" in fixed and "p2" in fixed:
+        flags |= cv2.CALIB_ZERO_TANGENT_DIST
+    _, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, tuple(image_size), None, None, flags=flags,
+                                                   criteria=crit)
     T = make_transform(rotvec_to_matrix(np.array(rvecs).reshape(-1, 3)), np.array(tvecs).reshape(-1, 3))
     return Camera(K, dist.ravel()[:5], image_size), T
 
@@ -183,35 +250,49 @@ def calibrate_camera(
     image_size: tuple[int, int],
     *,
     bias_correction: bool = True,
+    fixed: tuple[str, ...] = (),
+    start: CameraFit | None = None,
     max_iterations: int = 10,
     bias_tol_px: float = 1e-6,
 ) -> CameraFit:
-    """Calibrate from measured points (V, N, 2) in board order; see the module docstring."""
+    """Calibrate from measured points (V, N, 2) in board order; see the module docstring.
+
+    ``fixed`` names distortion coefficients held at 0. ``start``, a fit of the same points,
+    replaces Zhang's initialisation: its camera (fixed coefficients zeroed), poses and bias
+    offsets are where the bundle adjustment and the bias iterations start.
+    """
     pts = np.asarray(points, dtype=np.float64)
     if len(pts) < 3:
         raise CalibrationError(f"camera calibration needs at least 3 views, got {len(pts)}")
-    cam, T = _zhang(board, pts, image_size)
-    cam, T, res, A = bundle_adjust(board, pts, cam, T)
-    offsets = np.zeros_like(pts)
-    history = [{"iteration": 0, "rms_px": float(np.sqrt(np.mean(np.sum(res**2, -1)))),
-                "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "change_px": 0.0}]
+    fixed = tuple(n for n in DISTORTION if n in fixed)
+    if start is None:
+        cam, T = _zhang(board, pts, image_size, fixed)
+        offsets = np.zeros_like(pts)
+        history: list[dict[str, float]] = []
+    else:
+        cam, T, offsets = start.camera, start.T_cam_board, start.offsets
+        history = [dict(h) for h in start.bias_history]
+    cam, T, res, A = bundle_adjust(board, pts - offsets, cam, T, fixed)
+
+    def record(it: int, change: float) -> None:
+        history.append({"iteration": it, "rms_px": float(np.sqrt(np.mean(np.sum(res**2, -1)))),
+                        "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "change_px": change,
+                        "fixed": ",".join(fixed)})
+
+    it0 = int(history[-1]["iteration"]) + 1 if history else 0
+    record(it0, 0.0)
     if bias_correction and board.pattern != "chessboard":
-        for it in range(1, max_iterations + 1):
+        for it in range(it0 + 1, it0 + max_iterations + 1):
             new = np.array([
                 centroid_offsets(cam, board, matrix_to_rotvec(Tv[:3, :3]), Tv[:3, 3]) for Tv in T
             ])
             change = float(np.abs(new - offsets).max())
             offsets = new
-            cam, T, res, A = bundle_adjust(board, pts - offsets, cam, T)
-            history.append({"iteration": it, "rms_px": float(np.sqrt(np.mean(np.sum(res**2, -1)))),
-                            "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
-                            "change_px": change})
+            cam, T, res, A = bundle_adjust(board, pts - offsets, cam, T, fixed)
+            record(it, change)
             if change < bias_tol_px:
                 break
-    return CameraFit(cam, T, offsets, res, history, A)
-
-
-PARAMETERS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+    return CameraFit(cam, T, offsets, res, history, A, fixed)
 
 
 def grid_pixels(window: tuple[int, int, int, int], n: int = 21) -> np.ndarray:
@@ -221,12 +302,15 @@ def grid_pixels(window: tuple[int, int, int, int], n: int = 21) -> np.ndarray:
     return np.column_stack([u.ravel(), v.ravel()])
 
 
-def projection_uncertainty(camera: Camera, covariance: np.ndarray, pixels: np.ndarray) -> float:
-    """Predicted RMS (px, 1 sigma) of the projection error at ``pixels`` from the covariance
-    (9, 9) of the intrinsics and distortion: how far points seen there are projected (and
-    their rays cast) from where the true camera would put them."""
+def _directions(camera: Camera, pixels: np.ndarray) -> np.ndarray:
     xy = camera.undistort(np.asarray(pixels, dtype=np.float64))
-    Q = np.column_stack([xy, np.ones(len(xy))])
+    return np.column_stack([xy, np.ones(len(xy))])
+
+
+def projection_variance(camera: Camera, covariance: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """Predicted variance (M,) px² (sum over u and v) of the projection error at each pixel
+    from the covariance (9, 9) of the intrinsics and distortion."""
+    Q = _directions(camera, pixels)
     x0 = np.r_[camera.fx, camera.fy, camera.cx, camera.cy, camera.dist]
     J = np.empty((len(Q), 2, 9))
     for k in range(9):
@@ -238,21 +322,95 @@ def projection_uncertainty(camera: Camera, covariance: np.ndarray, pixels: np.nd
             K = np.array([[p[0], 0.0, p[2]], [0.0, p[1], p[3]], [0.0, 0.0, 1.0]])
             proj.append(Camera(K, p[4:9], camera.image_size).project(Q))
         J[:, :, k] = (proj[0] - proj[1]) / (2 * h)
-    var = np.einsum("nik,kl,nil->n", J, covariance, J)
-    return float(np.sqrt(np.mean(var)))
+    return np.einsum("nik,kl,nil->n", J, covariance, J)
+
+
+def projection_uncertainty(camera: Camera, covariance: np.ndarray, pixels: np.ndarray) -> float:
+    """Predicted RMS (px, 1 sigma) of the projection error at ``pixels`` from the covariance
+    (9, 9) of the intrinsics and distortion: how far points seen there are projected (and
+    their rays cast) from where the true camera would put them."""
+    return float(np.sqrt(np.mean(projection_variance(camera, covariance, pixels))))
+
+
+def model_error(fit: CameraFit, reference: CameraFit, pixels: np.ndarray) -> dict[str, float]:
+    """Predicted projection error (px RMS over ``pixels``) of a fit with coefficients fixed,
+    as noise and model error, against ``reference``, the fit of the same points with all
+    coefficients free (taken as unbiased).
+
+    The noise part comes from the fit's own covariance. The model part is the bias that
+    fixing coefficients at 0 leaves: the squared difference between the two fits'
+    projections, less what the noise alone puts into that difference (for nested least
+    squares, var(reference - fit) = var(reference) - var(fit)), clipped at 0. Their sum is
+    an estimate of the fit's mean squared error (Mallows' Cp, in the units that matter), and
+    for ``reference`` itself it is its variance.
+    """
+    var = float(np.mean(projection_variance(fit.camera, fit.covariance, pixels)))
+    var_ref = float(np.mean(projection_variance(reference.camera, reference.covariance, pixels)))
+    Q = _directions(reference.camera, pixels)
+    d2 = float(np.mean(np.sum((fit.camera.project(Q) - reference.camera.project(Q)) ** 2, axis=1)))
+    bias2 = max(d2 - max(var_ref - var, 0.0), 0.0) if fit.fixed else 0.0
+    return {"noise_px": float(np.sqrt(var)), "model_px": float(np.sqrt(bias2)),
+            "difference_px": float(np.sqrt(d2)), "reference_noise_px": float(np.sqrt(var_ref)),
+            "total_px": float(np.sqrt(var + bias2))}
+
+
+def select_distortion(
+    points: np.ndarray,
+    board: Board,
+    image_size: tuple[int, int],
+    full: CameraFit,
+    window: tuple[int, int, int, int],
+    *,
+    bias_correction: bool = True,
+    models: tuple[tuple[str, ...], ...] | None = None,
+) -> tuple[CameraFit, list[dict[str, Any]]]:
+    """The distortion model (which coefficients to fix at 0) with the lowest predicted
+    projection error over ``window``, and the table of every candidate.
+
+    ``full`` is the fit of ``points`` with all five coefficients free. A coefficient the views
+    do not determine (k3 when no board reaches the sensor's edges, say) inflates the free
+    fit's variance far more than fixing it costs in model error (:func:`model_error`): then
+    fixing it wins. Where the views determine every coefficient, the model error of any
+    fixed set exceeds its saving in noise and the free fit stays. Candidates are fitted from
+    ``full`` with its bias offsets; the winner's bias iterations are then run to the end.
+    """
+    pix = grid_pixels(window)
+    rows: list[dict[str, Any]] = []
+    fits: list[CameraFit] = []
+    for fixed in models or DISTORTION_MODELS:
+        fit = full if not fixed else calibrate_camera(
+            points, board, image_size, bias_correction=bias_correction, fixed=fixed, start=full,
+            max_iterations=0)
+        fits.append(fit)
+        rows.append({"fixed": list(fit.fixed), "free": [n for n in DISTORTION if n not in fit.fixed],
+                     "rms_px": fit.rms_px, **model_error(fit, full, pix)})
+    best = min(range(len(rows)), key=lambda k: (rows[k]["total_px"], -len(rows[k]["fixed"])))
+    for k, r in enumerate(rows):
+        r["chosen"] = k == best
+    chosen = fits[best]
+    if chosen.fixed and bias_correction and board.pattern != "chessboard":
+        chosen = calibrate_camera(points, board, image_size, bias_correction=True, fixed=chosen.fixed,
+                                  start=chosen)
+    return replace(chosen, reference=full, selection=rows), rows
 
 
 def uncertainty_summary(fit: CameraFit, windows: dict[str, tuple[int, int, int, int]]) -> dict[str, Any]:
-    """The fit's standard deviations and its predicted projection error over each window."""
+    """The fit's standard deviations and its predicted projection error over each window
+    (noise and, where coefficients were fixed, model error: :func:`model_error`)."""
     C = fit.covariance
+    ref = fit.reference or fit
+    parts = {name: model_error(fit, ref, grid_pixels(win)) for name, win in windows.items()}
     return {
         "sigma_px": fit.sigma_px,
         "std": dict(zip(PARAMETERS, np.sqrt(np.diag(C)).tolist(), strict=True)),
         "covariance": C,
-        "projection_rms_px": {name: projection_uncertainty(fit.camera, C, grid_pixels(win))
-                              for name, win in windows.items()},
-        "note": "1 sigma, from the residuals and the Jacobian of the final bundle adjustment; "
-                "projection error RMS over a 21 x 21 grid of each window",
+        "projection_rms_px": {name: e["total_px"] for name, e in parts.items()},
+        "projection_noise_px": {name: e["noise_px"] for name, e in parts.items()},
+        "projection_model_px": {name: e["model_px"] for name, e in parts.items()},
+        "note": "1 sigma, from the residuals and the Jacobian of the final bundle adjustment, plus "
+                "(where distortion coefficients were fixed at 0) the model error that fixing them "
+                "leaves, estimated against the fit with all of them free; projection error RMS over "
+                "a 21 x 21 grid of each window",
     }
 
 
@@ -302,11 +460,18 @@ def solve_views(
     bias_correction: bool = True,
     outlier_factor: float = 3.0,
     min_views: int = 6,
+    distortion: str = "select",
+    window: tuple[int, int, int, int] | None = None,
 ) -> tuple[CameraFit, list[str], list[dict[str, Any]]]:
     """Calibrate from detections, skipping views not found and RMS outliers.
 
-    Returns the fit, the names of the views it used (in order) and the table of all views.
+    ``distortion="select"`` then fixes at 0 the coefficients the views do not determine
+    (:func:`select_distortion`, judged over ``window``, by default the whole sensor);
+    ``"full"`` keeps all five free. Returns the fit, the names of the views it used (in
+    order) and the table of all views.
     """
+    if distortion not in DISTORTION_CHOICES:
+        raise ValueError(f"distortion must be one of {DISTORTION_CHOICES}, got {distortion!r}")
     reasons: dict[str, str] = {}
     rms: dict[str, float] = {}
     for n, d in zip(names, detections, strict=True):
@@ -326,6 +491,11 @@ def solve_views(
         limit = max(outlier_factor * float(np.median(vr)), OUTLIER_FLOOR_PX)
         worst = int(np.argmax(vr))
         if vr[worst] <= limit:
+            if distortion == "select":
+                pts = np.array([detections[i].points for i in use])
+                fit, _ = select_distortion(pts, board, image_size, fit, window or (0, 0, *image_size),
+                                           bias_correction=bias_correction)
+                rms.update({names[i]: float(r) for i, r in zip(use, fit.view_rms, strict=True)})
             return fit, [names[i] for i in use], _view_table(names, reasons, rms)
         # drop the worst view only: one bad view inflates the others' residuals too
         n = names[use[worst]]
@@ -333,6 +503,36 @@ def solve_views(
                       f"{np.median(vr):.3f} px)")
         log.warning("%s: skipped: %s", n, reasons[n])
     raise _too_few(_view_table(names, reasons, rms), min_views)  # pragma: no cover
+
+
+def _model_record(fit: CameraFit, distortion: str) -> dict[str, Any]:
+    """camera.json's account of which distortion coefficients were estimated, and why."""
+    rec: dict[str, Any] = {
+        "selection": distortion,
+        "free": [n for n in DISTORTION if n not in fit.fixed],
+        "fixed": {n: 0.0 for n in fit.fixed},
+    }
+    if distortion == "full":
+        rec["reason"] = "all five coefficients estimated (distortion: full, no model selection)"
+        return rec
+    rows = fit.selection or []
+    full = next((r for r in rows if not r["fixed"]), None)
+    mine = next((r for r in rows if r["chosen"]), None)
+    if fit.fixed and full is not None and mine is not None:
+        rec["reason"] = (
+            f"{', '.join(fit.fixed)} fixed at 0: the views do not determine "
+            f"{'it' if len(fit.fixed) == 1 else 'them'}; over the scan window the fit with all "
+            f"coefficients free predicts {full['total_px']:.4f} px RMS projection error (noise), "
+            f"this model {mine['total_px']:.4f} px (noise {mine['noise_px']:.4f} px, model error "
+            f"{mine['model_px']:.4f} px), the lowest of {len(rows)} candidate models")
+    else:
+        rec["reason"] = ("all five coefficients estimated: fixing any of them at 0 costs more model "
+                         "error over the scan window than it saves in noise")
+    rec["criterion"] = ("predicted projection error over the scan window (px RMS, 1 sigma): noise "
+                        "from the fit's covariance plus the model error of fixing coefficients, "
+                        "estimated against the fit with all of them free")
+    rec["candidates"] = rows
+    return rec
 
 
 def run_calibrate_camera(
@@ -344,13 +544,15 @@ def run_calibrate_camera(
     min_views: int = 6,
     threads: int = 1,
     views: str = "all",
+    distortion: str = "select",
 ) -> Camera:
     """Stage: calibrate the camera from the board views and write ``camera.json``.
 
     ``views="camera"`` uses ``calibration/camera/*.png`` only; ``"all"`` (default) adds every
     other lasers-off board view of the capture (``laser_*/<pose>_board.png`` and
     ``handeye/*.png``): same camera, same board, and the intrinsics' precision grows with the
-    number of views (the principal point above all).
+    number of views (the principal point above all). ``distortion``: see :func:`solve_views`
+    (the model is judged over the scan window, where the scanner measures).
     """
     from crossline.io.capture import open_capture
 
@@ -366,14 +568,17 @@ def run_calibrate_camera(
         paths += list(cap.handeye_images)
     names = [str(p.relative_to(cap.root)) for p in paths]
     detections = detect_views(paths, board, (size[1], size[0]), threads)
+    sw = cap.rig.scan_window
+    window = (sw.x, sw.y, sw.width, sw.height)
     fit, used, table = solve_views(
         names, detections, board, size, bias_correction=bias_correction,
-        outlier_factor=outlier_factor, min_views=min_views,
+        outlier_factor=outlier_factor, min_views=min_views, distortion=distortion, window=window,
     )
     cam = fit.camera
     last = fit.bias_history[-1]
     extra: dict[str, Any] = {
         "model": "pinhole + OpenCV 5-coefficient distortion (k1, k2, p1, p2, k3)",
+        "distortion_model": _model_record(fit, distortion),
         "rms_px": fit.rms_px,
         "n_views_used": len(used),
         "views": table,
@@ -388,12 +593,12 @@ def run_calibrate_camera(
         },
         "board": board.to_dict(),
         "view_set": views,
-        "uncertainty": uncertainty_summary(fit, {"sensor": (0, 0, *size), "scan_window": (
-            cap.rig.scan_window.x, cap.rig.scan_window.y, cap.rig.scan_window.width,
-            cap.rig.scan_window.height)}),
+        "uncertainty": uncertainty_summary(fit, {"sensor": (0, 0, *size), "scan_window": window}),
     }
     cam = Camera(cam.K, cam.dist, cam.image_size, extra)
     cam.save(out)
+    if fit.fixed:
+        log.info("camera: %s", extra["distortion_model"]["reason"])
     log.info("camera: %d of %d views used, RMS %.4f px, fx %.3f fy %.3f cx %.3f cy %.3f",
              len(used), len(names), fit.rms_px, cam.fx, cam.fy, cam.cx, cam.cy)
     u = extra["uncertainty"]
