@@ -23,9 +23,17 @@ correspondences with the simulator's noise model (``--protocol``), no rendering.
     python benchmarks/bench_handeye.py                                  # compact 12, paper 6 seeds
     python benchmarks/bench_handeye.py --preset compact --seeds 8 --threads 2
     python benchmarks/bench_handeye.py --preset compact --views 36 --seeds 6
+    python benchmarks/bench_handeye.py --noise-sweep 1,3,10                # issue 18.6
 
-Results: benchmarks/results/handeye_seeds.txt and .json (timings are wall-clock on a shared
-machine: noisy).
+The noise sweep (``--noise-sweep``) scales each rendered seed's own arm-error draws (position
+and rotation of every reported flange pose) by each factor, solves with the true camera and
+prints per method the board consistency on the views (mm, the truth-free score the stage
+chooses by) and X's error against truth (volume RMS, mm), the chosen method, the pairs the
+data-driven tolerance keeps against those a fixed 0.05 deg cut would keep, and the
+least-scatter X (the X minimising the board consistency itself) as a reference.
+
+Results: benchmarks/results/handeye_seeds.txt and .json, handeye_noise.txt and .json
+(timings are wall-clock on a shared machine: noisy).
 """
 
 from __future__ import annotations
@@ -50,12 +58,21 @@ from bench_calibration import DEPTHS, TARGETS, volume_points  # noqa: E402
 
 from crossline.calibrate.bias import centroid_offsets  # noqa: E402
 from crossline.calibrate.camera import detect_views, solve_views  # noqa: E402
-from crossline.calibrate.handeye import OPENCV_METHODS, point_uncertainty, solve_handeye  # noqa: E402
+from crossline.calibrate.handeye import (  # noqa: E402
+    OPENCV_METHODS,
+    consistency_mm,
+    motion_pairs,
+    point_uncertainty,
+    solve_handeye,
+)
+from crossline.calibrate.lm import dense_normal, levenberg_marquardt  # noqa: E402
 from crossline.camera import Camera  # noqa: E402
 from crossline.geometry import (  # noqa: E402
     invert_transform,
+    make_transform,
     matrix_to_rotvec,
     rotation_angle,
+    rotvec_to_matrix,
     transform_points,
 )
 from crossline.io.atomic import write_json  # noqa: E402
@@ -296,6 +313,125 @@ def protocol(rig: RigPreset, view_counts: list[int], trials: int, sigma_px: floa
     return rows
 
 
+# ----------------------------------------------------------------------------- noise sweep
+
+FIXED_CUT_DEG = 0.05  # the former fixed tolerance on |theta_A - theta_B|
+SWEEP_METHODS = (*METHODS, "least_scatter")
+
+
+def least_scatter(X0: np.ndarray, T_base_tool: np.ndarray, T_cam_board: np.ndarray, board) -> np.ndarray:
+    """The X minimising the board consistency on the views itself (Gauss-Newton from ``X0``)."""
+    P = board.object_points()
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        T = T_base_tool @ X0 @ make_transform(rotvec_to_matrix(x[:3]), x[3:]) @ T_cam_board
+        pts = np.einsum("vij,nj->vni", T[:, :3, :3], P) + T[:, None, :3, 3]
+        return (pts - pts.mean(0)).ravel()
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        f0 = fun(x)
+        J = np.empty((f0.size, 6))
+        for k in range(6):
+            dx = np.zeros(6)
+            dx[k] = 1e-7 if k < 3 else 1e-5
+            J[:, k] = (fun(x + dx) - f0) / dx[k]
+        return J
+
+    x = levenberg_marquardt(fun, dense_normal(jac), np.zeros(6)).x
+    return X0 @ make_transform(rotvec_to_matrix(x[:3]), x[3:])
+
+
+def sweep_seed(rig: RigPreset, seed: int, views: int | None, threads: int, scales: list[float]) -> list[dict]:
+    """One rendered seed's hand-eye views solved with its arm errors scaled by each factor."""
+    root = render(rig, seed, views, "handeye", threads)
+    meta = json.loads((root / "meta.json").read_text())
+    board = rig.board.board
+    paths = sorted((root / "calibration" / "handeye").glob("pose_*.png"))
+    dets = detect_views(paths, board, (rig.sensor.height, rig.sensor.width), threads)
+    use = [k for k, d in enumerate(dets) if d.found]
+    pts = np.array([dets[k].points for k in use])
+    T_true = np.array(meta["T_base_tool_true"])[use]
+    dp = np.array(meta["error_position_mm"])[use]
+    dth = np.array(meta["error_rotation_rad"])[use]
+    cam = true_camera(rig)
+    Pv = volume_points(cam, DEPTHS[rig.name], n=11, nz=8)
+    X_t = rig.T_tool_cam
+    rows = []
+    for s in scales:
+        T_rep = make_transform(T_true[:, :3, :3] @ rotvec_to_matrix(s * dth), T_true[:, :3, 3] + s * dp)
+        t0 = time.perf_counter()
+        he = solve_handeye(cam, board, pts, T_rep, [paths[k].name for k in use])
+        t_solve = time.perf_counter() - t0
+        m = he.extra["methods"]
+        used = np.array([b["used"] for b in he.extra["board_poses"]])
+        Tc = np.array([b["T_cam_board"] for b in he.extra["board_poses"]])
+        Xs = {k: np.array(v["T_tool_cam"]) for k, v in m.items() if "T_tool_cam" in v}
+        Xs["least_scatter"] = least_scatter(Xs["refined"], T_rep[used], Tc[used], board)
+        per = {}
+        for k, X in Xs.items():
+            d = transform_points(X, Pv) - transform_points(X_t, Pv)
+            per[k] = {"volume_rms_mm": float(np.sqrt(np.mean(np.sum(d**2, 1)))),
+                      "board_consistency_mm": consistency_mm(X, T_rep[used], Tc[used], board)}
+        # what the former fixed cut would have kept of the same pairs
+        pairs = [(i, j) for i in range(len(use)) for j in range(i + 1, len(use))]
+        A, B = motion_pairs(T_rep, Tc, pairs)
+        mis = np.degrees(np.abs(rotation_angle(A[:, :3, :3]) - rotation_angle(B[:, :3, :3])))
+        sel = he.extra["selection"]
+        rows.append({
+            "seed": seed, "scale": s, "views": len(use), "chosen": he.method, "methods": per,
+            "selection": {k: v for k, v in sel.items() if k != "rule"},
+            "pairs": {k: he.extra["pairs"][k] for k in ("used", "total", "mismatch_sigma_deg",
+                                                        "mismatch_rms_deg", "angle_tolerance_deg")},
+            "pairs_fixed_cut_kept": int(np.sum(mis <= FIXED_CUT_DEG)),
+            "solve_s": t_solve,
+        })
+    return rows
+
+
+def format_sweep(title: str, rows: list[dict], scales: list[float]) -> tuple[str, dict]:
+    """Per scale: per method mean board consistency and median / RMS X error over seeds."""
+    short = {"chou_kamel": "C-K", "tsai": "tsai", "park": "park", "horaud": "horaud", "andreff": "andreff",
+             "daniilidis": "daniil", "reprojection": "reproj", "refined": "refined",
+             "least_scatter": "l-scat", "chosen": "CHOSEN"}
+    cols = [*SWEEP_METHODS, "chosen"]
+    L = [title]
+    summary: dict = {}
+    for s in scales:
+        rs = [r for r in rows if r["scale"] == s]
+
+        def vals(key: str, col: str, rs=rs) -> np.ndarray:
+            return np.array([r["methods"][r["chosen"] if col == "chosen" else col][key] for r in rs
+                             if (r["chosen"] if col == "chosen" else col) in r["methods"]])
+
+        L.append(f"  arm noise x{s:g} ({len(rs)} seeds; pairs kept: data-driven "
+                 f"{sum(r['pairs']['used'] for r in rs)}, fixed {FIXED_CUT_DEG:g} deg "
+                 f"{sum(r['pairs_fixed_cut_kept'] for r in rs)}, of {sum(r['pairs']['total'] for r in rs)}; "
+                 f"mismatch RMS {np.median([r['pairs']['mismatch_rms_deg'] for r in rs]):.4f} deg, robust "
+                 f"sigma {np.median([r['pairs']['mismatch_sigma_deg'] for r in rs]):.4f} deg, cut "
+                 f"{np.median([r['pairs']['angle_tolerance_deg'] for r in rs]):.4f} deg (medians))")
+        L.append("    " + f"{'':26}" + "".join(f"{short[c]:>9}" for c in cols))
+        summ = {}
+        for label, key, stat in (("board consistency mean", "board_consistency_mm", np.mean),
+                                 ("X error median", "volume_rms_mm", np.median),
+                                 ("X error RMS", "volume_rms_mm", lambda v: np.sqrt(np.mean(v**2)))):
+            row = {c: float(stat(vals(key, c))) for c in cols}
+            summ[label] = row
+            L.append(f"    {label + ' (mm)':26}" + "".join(f"{row[c]:9.5f}" for c in cols))
+        chosen = [r["chosen"] for r in rs]
+        d = np.array([r["selection"]["vs_best_opencv_percent"] for r in rs])
+        ref_wins = np.mean([r["methods"]["refined"]["volume_rms_mm"]
+                            <= min(r["methods"][k]["volume_rms_mm"] for k in OPENCV_METHODS) for r in rs])
+        counts = ", ".join(f"{c} x{chosen.count(c)}" for c in sorted(set(chosen)))
+        L.append(f"    chosen: {counts}; chosen vs "
+                 f"best OpenCV consistency: median {np.median(d):+.2f} %, worst {d.max():+.2f} % "
+                 f"(selection margin median {np.median([r['selection']['margin_mm'] for r in rs]):.5f} mm); "
+                 f"refined X closer to truth than every OpenCV method in {100 * ref_wins:.0f} % of seeds")
+        summ.update(chosen=chosen, vs_best_opencv_percent=d.tolist(),
+                    refined_beats_opencv_fraction=float(ref_wins))
+        summary[f"x{s:g}"] = summ
+    return "\n".join(L), summary
+
+
 # ----------------------------------------------------------------------------- report
 
 
@@ -356,8 +492,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--protocol", type=str, default="",
                     help="comma-separated view counts for the synthetic protocol study (e.g. 24,36,48)")
     ap.add_argument("--protocol-trials", type=int, default=40)
+    ap.add_argument("--noise-sweep", type=str, default="",
+                    help="comma-separated arm-noise factors (e.g. 1,3,10): the noise sweep only")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--out", type=str, default="handeye_seeds", help="results file stem")
+    ap.add_argument("--out", type=str, help="results file stem (default handeye_seeds, "
+                                            "handeye_noise with --noise-sweep)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.ERROR, format="%(levelname)s %(name)s: %(message)s")
     import cv2
@@ -365,6 +504,28 @@ def main(argv: list[str] | None = None) -> int:
     cv2.setNumThreads(1)
     presets = args.preset or ["compact", "paper"]
     blocks, results = [], {}
+    if args.noise_sweep:
+        args.out = args.out or "handeye_noise"
+        scales = [float(x) for x in args.noise_sweep.split(",")]
+        for name in presets:
+            rig = PRESETS[name]
+            n_seeds = args.seeds or DEFAULT_SEEDS.get(name, 3)
+            rows = []
+            for seed in range(n_seeds):
+                rows += sweep_seed(rig, seed, args.views, args.threads, scales)
+                print(f"{name} seed {seed}: " + ", ".join(
+                    f"x{r['scale']:g} {r['chosen']} {r['methods'][r['chosen']]['volume_rms_mm']:.5f} mm"
+                    for r in rows[-len(scales):]), flush=True)
+            title = (f"== {name}: {rows[0]['views']} hand-eye views, true camera, seeds 0-{n_seeds - 1}; "
+                     f"arm errors = each seed's draws x factor (x1: {rig.arm.sigma_axis_mm:.5f} mm / "
+                     f"{rig.arm.rot_sigma_rad:.1e} rad per axis); X error = volume RMS vs true X, z = "
+                     f"{DEPTHS[name][0]:g}-{DEPTHS[name][1]:g} mm")
+            block, summ = format_sweep(title, rows, scales)
+            print(block, flush=True)
+            blocks.append(block)
+            results[name] = {"rows": rows, "summary": summ}
+        presets = []
+    args.out = args.out or "handeye_seeds"
     for name in presets:
         rig = PRESETS[name]
         n_seeds = args.seeds or DEFAULT_SEEDS.get(name, 3)

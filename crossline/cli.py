@@ -292,26 +292,29 @@ def _calibrate_lasers(p: argparse.ArgumentParser) -> None:
     """
     Board poses from calibration/handeye/*.png and arm poses from poses.csv. Solves AX = XB
     by Chou & Kamel (the paper), alongside OpenCV's methods, rejecting motion pairs whose
-    rotation angles disagree; then refines X and the board's pose in the base frame by
-    minimising the reprojection error of every board point, the reported arm poses free to
-    move within their noise (estimated from the data). Resolves the 180-degree ambiguity
-    of symmetric boards across views. Writes handeye.json with every method's X.
+    rotation angles disagree by more than --mismatch-k robust sigmas of all pairs' mismatches
+    (the tolerance follows the data's noise); then refines X and the board's pose in the base
+    frame by minimising the reprojection error of every board point, the reported arm poses
+    free to move within their noise (estimated from the data). The refined X is kept unless a
+    method's board consistency on the views is better by more than X's uncertainty explains.
+    Resolves the 180-degree ambiguity of symmetric boards across views. Writes handeye.json
+    with every method's X and board consistency, and which method won.
     """,
 )
 def _calibrate_handeye(p: argparse.ArgumentParser) -> None:
     p.add_argument("capture", type=Path, help="capture folder")
     p.add_argument("--camera", type=Path, required=True, help="camera.json")
     p.add_argument("--out", type=Path, required=True, help="handeye.json to write")
-    p.add_argument("--angle-tolerance-deg", type=float, default=0.05,
-                   help="reject motion pairs whose rotation angles differ by more (default 0.05)")
+    p.add_argument("--mismatch-k", type=float, default=4.0,
+                   help="reject motion pairs whose rotation angles differ by more than this many "
+                        "robust sigmas of all pairs' mismatches (default 4)")
     _threads(p)
 
     def run(a: argparse.Namespace) -> int:
         from crossline.calibrate.handeye import run_calibrate_handeye
 
         run_calibrate_handeye(
-            a.capture, a.camera, a.out, angle_tolerance_deg=a.angle_tolerance_deg,
-            threads=a.threads,
+            a.capture, a.camera, a.out, mismatch_k=a.mismatch_k, threads=a.threads,
         )
         return 0
 

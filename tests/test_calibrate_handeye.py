@@ -339,3 +339,95 @@ def test_ml_with_estimated_sigmas_beats_the_plain_fit_when_the_images_dominate()
     assert CHI2_MEAN_RANGE[0] < r["chi2"].mean() < CHI2_MEAN_RANGE[1], r["chi2"].mean()
     ratio = _rms(r["refined"]) / _rms(r["predicted"])
     assert 0.75 < ratio < 1.3, ratio
+
+
+# ----------------------------------------------------------------------------- a noisy arm (issue 18.6)
+
+
+@pytest.mark.slow
+def test_ten_times_the_arm_noise_rendered(quick_capture) -> None:
+    """The paper rig's rendered hand-eye views with the arm's reported-pose error 10x the
+    simulator's (its own error draws scaled: 0.058 mm, 2e-4 rad per axis), true camera.
+
+    The pair tolerance follows the data: every motion pair stays (a fixed cut would have to be
+    re-tuned per arm). The chosen X's board consistency is within the margin its own
+    uncertainty explains of the best OpenCV method's and within 1 % of it (the least-scatter X
+    is fitted to these views' arm errors: in-sample, the refined X cannot be expected below it;
+    against truth it is the better one, see benchmarks/results/handeye_noise.txt). X's error
+    against truth is within 3 sigma of its covariance's prediction (the arm dominates, so the
+    prediction scales with the arm noise; the covariance's calibration is tested over 30 draws
+    above), and not worse than 1.25x the best of OpenCV's methods against truth.
+    """
+    import json
+
+    from crossline.calibrate.camera import detect_views
+    from crossline.io.capture import open_capture
+
+    cap = open_capture(quick_capture)
+    truth = json.loads((quick_capture / "truth.json").read_text())
+    cam = Camera(np.array(truth["camera"]["K"]), np.array(truth["camera"]["dist"]),
+                 (cap.rig.sensor.width, cap.rig.sensor.height))
+    names = [p.name for p in cap.handeye_images]
+    dets = detect_views(cap.handeye_images, cap.rig.board, (cap.rig.sensor.height, cap.rig.sensor.width), 2)
+    assert all(d.found for d in dets)
+    t = truth["calibration"]["handeye"]
+    T_true = np.array([t[n]["T_base_tool"] for n in names])
+    dp = np.array([t[n]["error_position_mm"] for n in names])
+    dth = np.array([t[n]["error_rotation_rad"] for n in names])
+    T_rep = make_transform(T_true[:, :3, :3] @ rotvec_to_matrix(10.0 * dth), T_true[:, :3, 3] + 10.0 * dp)
+    he = solve_handeye(cam, cap.rig.board, np.array([d.points for d in dets]), T_rep, names)
+    pairs, sel, m = he.extra["pairs"], he.extra["selection"], he.extra["methods"]
+    assert pairs["used"] >= 0.9 * pairs["total"], pairs
+    # the cut is k robust sigmas of the mismatches actually seen, not a fixed angle
+    assert pairs["mismatch_rms_deg"] < pairs["angle_tolerance_deg"] < 10 * pairs["mismatch_rms_deg"]
+    opencv = {k: m[k]["board_consistency_mm"] for k in OPENCV_METHODS}
+    best = min(opencv, key=opencv.get)
+    assert sel["best_opencv"] == best
+    c = m[he.method]["board_consistency_mm"]
+    assert c <= opencv[best] + sel["margin_mm"] and c <= 1.01 * opencv[best], (c, opencv[best], sel)
+    X_t = np.array(truth["T_tool_cam"])
+    g = np.stack(np.meshgrid(np.linspace(-30, 30, 5), np.linspace(-20, 20, 5), np.linspace(115, 185, 5)),
+                 -1).reshape(-1, 3)
+
+    def err(X: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(np.sum((transform_points(X, g) - transform_points(X_t, g)) ** 2, 1))))
+
+    C = np.array(m["refined"]["uncertainty"]["covariance_X"])
+    predicted = float(np.sqrt(np.mean(point_uncertainty(he.T_tool_cam, C, g) ** 2)))
+    e = err(he.T_tool_cam)
+    assert e < 3.0 * predicted, (e, predicted)
+    assert e <= 1.25 * min(err(np.array(m[k]["T_tool_cam"])) for k in OPENCV_METHODS)
+
+
+def test_selection_keeps_the_refined_x_within_its_uncertainty_and_not_beyond() -> None:
+    """The final choice by board consistency: a refined X off by its own 1 sigma stays (the
+    least-scatter X is fitted to the views' noise, being lower says nothing); one off by 20
+    sigma loses to the method whose consistency is best, and the table says by how much."""
+    from crossline.calibrate.handeye import consistency_margin, consistency_mm, select_estimate
+
+    Tc, Tb, _ = _rig(10, seed=3)
+    rng = np.random.default_rng(4)
+    Tn = make_transform(Tb[:, :3, :3] @ rotvec_to_matrix(rng.normal(0, 2e-4, (10, 3))),
+                        Tb[:, :3, 3] + rng.normal(0, 0.05, (10, 3)))
+    cov = np.diag([1e-4] * 3 + [0.02] * 3) ** 2  # rad, mm
+    e = rng.standard_normal(6)
+    one_sigma = X_TRUE @ make_transform(rotvec_to_matrix(e[:3] * 1e-4), e[3:] * 0.02)
+    far = X_TRUE @ make_transform(rotvec_to_matrix(e[:3] * 2e-3), e[3:] * 0.4)
+    for X_ref, want in ((one_sigma, "refined"), (far, "park")):
+        methods = {name: {"T_tool_cam": X, "board_consistency_mm": consistency_mm(X, Tn, Tc, BOARD)}
+                   for name, X in (("refined", X_ref), ("park", X_TRUE),
+                                   ("tsai", X_TRUE @ make_transform(np.eye(3), [0.3, 0, 0])))}
+        sel = select_estimate(methods, cov, Tn, Tc, BOARD)
+        assert sel["method"] == want, sel
+        assert sel["best_opencv"] == "park"
+        c = methods[want]["board_consistency_mm"]
+        assert sel["vs_best_opencv_mm"] == pytest.approx(c - methods["park"]["board_consistency_mm"])
+    # the margin against draws of X's error about the least-scatter X (exact arm poses: X_TRUE,
+    # consistency 0): its mean and its 99 % quantile
+    m = consistency_margin(X_TRUE, cov, Tb, Tc, BOARD)
+    draws = np.array([
+        consistency_mm(X_TRUE @ make_transform(rotvec_to_matrix(d[:3]), d[3:]), Tb, Tc, BOARD) ** 2
+        for d in rng.multivariate_normal(np.zeros(6), cov, 600)
+    ])
+    assert m["expected_mm2"] == pytest.approx(draws.mean(), rel=0.1)
+    assert m["margin_mm2"] == pytest.approx(np.quantile(draws, 0.99), rel=0.25)

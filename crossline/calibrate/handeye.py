@@ -15,8 +15,13 @@ a motion pair (i, j)::
    frame, so ``θ(A) = θ(B)`` for the right labelling; a wrong one adds a half turn about the
    board normal), then confirmed with the first X: each view's implied ``T_base_board`` must
    agree with the others'.
-2. Pairs with ``|θA − θB|`` above the tolerance are rejected and counted; motion whose
-   rotation axes are all nearly parallel is a :class:`CalibrationError`.
+2. The tolerance on ``θA − θB`` comes from the data: its spread is set by the arm's and the
+   board poses' rotation noise (the same for every pair to first order: the noise projected on
+   the pair's rotation axis), estimated robustly as σ = 1.4826 · median |θA − θB| over all
+   pairs (a wrong view spoils its own V − 1 pairs, a minority). Pairs beyond ``k σ`` (``k``
+   from the configuration) are rejected and counted; a view in more rejected than accepted
+   pairs is left out; motion whose rotation axes are all nearly parallel is a
+   :class:`CalibrationError`.
 3. Chou & Kamel (1991), the paper's method: ``q_A ⊗ q_X = q_X ⊗ q_B`` stacked for every pair,
    ``q_X`` the right singular vector of the smallest singular value; then the translation by
    linear least squares from ``(R_A − I) t_X = R_X t_B − t_A``. OpenCV's five methods
@@ -29,7 +34,19 @@ a motion pair (i, j)::
    correction weighted by the arm's standard deviations against the image residuals, the
    image and arm sigmas estimated from the residuals by variance components (Förstner). The
    covariance of X that follows predicts its error (checked over many noise draws in the
-   tests and in benchmarks/bench_handeye.py).
+   tests and in benchmarks/bench_handeye.py). The refinement starts from the algebraic
+   solution (Chou–Kamel or OpenCV's) with the best board consistency.
+5. The final estimate is chosen on the views, with every method scored alike by its board
+   consistency (:func:`consistency_mm`, the scatter of the board's points in the base frame).
+   That score is in-sample: an X fitted to the arm's noise of these views lowers it while
+   moving away from the truth, so the least-scatter X is not the most accurate one (the
+   benchmark shows it). The refined X is kept unless another method's consistency is better
+   by more than X's own uncertainty explains: the excess of squared consistency that an error
+   of X distributed as its covariance causes, ``δᵀ H δ`` with ``H`` the consistency's Gauss–
+   Newton matrix, has a quantile (Welch–Satterthwaite, 99 %) that sets the margin. Beyond it
+   the refinement's noise model does not fit the data and the method with the best
+   consistency wins. ``selection`` in handeye.json says which won, the margin, and how it
+   compares with the best OpenCV method.
 """
 
 from __future__ import annotations
@@ -68,7 +85,9 @@ __all__ = [
     "HandEye",
     "check_motion",
     "chou_kamel",
+    "consistency_margin",
     "consistency_mm",
+    "mismatch_sigma",
     "motion_pairs",
     "opencv_handeye",
     "pair_residuals",
@@ -76,6 +95,7 @@ __all__ = [
     "refine_handeye",
     "resolve_labellings",
     "run_calibrate_handeye",
+    "select_estimate",
     "symmetry_transforms",
 ]
 
@@ -90,6 +110,11 @@ OPENCV_METHODS = {
 }
 MIN_PAIR_ROTATION_DEG = 1.0  # pairs rotating less say nothing about the rotation axis
 MIN_AXIS_SPREAD_DEG = 5.0  # rotation axes must span at least this angle
+MISMATCH_K = 4.0  # default cut on |theta_A - theta_B|, in robust sigmas of all pairs' mismatches
+# floor of that sigma (rad): far below any real rotation noise, it keeps exact (synthetic)
+# data, whose mismatches are rounding, from rejecting pairs on rounding
+MISMATCH_SIGMA_FLOOR = 1e-9
+SELECTION_QUANTILE = 0.99  # of the consistency excess X's own uncertainty explains
 
 
 @dataclass(frozen=True)
@@ -219,6 +244,57 @@ def consistency_mm(X: np.ndarray, T_base_tool: np.ndarray, T_cam_board: np.ndarr
     T = T_base_tool @ X @ T_cam_board
     pts = np.einsum("vij,nj->vni", T[:, :3, :3], P) + T[:, None, :3, 3]
     return float(np.sqrt(np.mean(np.sum((pts - pts.mean(0)) ** 2, axis=-1))))
+
+
+def mismatch_sigma(theta_A: np.ndarray, theta_B: np.ndarray) -> float:
+    """Robust standard deviation (rad) of the pairs' rotation-angle mismatch ``θA − θB``.
+
+    The mismatch is zero for the right data, so its spread is taken about zero: 1.4826 times
+    the median of ``|θA − θB|`` (the normal-consistent MAD), which a minority of wrong pairs
+    (those of one bad view) cannot inflate much.
+    """
+    m = np.abs(np.asarray(theta_A, dtype=np.float64) - np.asarray(theta_B, dtype=np.float64))
+    return max(1.4826 * float(np.median(m)), MISMATCH_SIGMA_FLOOR)
+
+
+def _consistency_residuals(X: np.ndarray, T_base_tool: np.ndarray, T_cam_board: np.ndarray,
+                           P: np.ndarray) -> np.ndarray:
+    T = T_base_tool @ X @ T_cam_board
+    pts = np.einsum("vij,nj->vni", T[:, :3, :3], P) + T[:, None, :3, 3]
+    return (pts - pts.mean(0)).ravel()
+
+
+def consistency_margin(
+    X: np.ndarray, cov: np.ndarray, T_base_tool: np.ndarray, T_cam_board: np.ndarray, board: Board,
+    quantile: float = SELECTION_QUANTILE,
+) -> dict[str, float]:
+    """How much worse a consistency X's own uncertainty explains (mm², and mm at X's consistency).
+
+    With ``r(δ)`` the consistency residuals of ``X exp(δ)`` (``consistency_mm`` squared is
+    ``|r|² / (V N)``) and ``J`` their Jacobian, an error ``δ ~ N(0, cov)`` of X changes the
+    squared consistency by ``δᵀ H δ``, ``H = JᵀJ / (V N)``: a weighted sum of χ²₁ whose weights
+    are the eigenvalues of ``cov^½ H cov^½``; its ``quantile`` by the Welch–Satterthwaite
+    approximation (a scaled χ² of matched mean and variance) is the margin.
+    """
+    from scipy.special import gammaincinv  # the chi-square quantile, without scipy.stats' import
+
+    P = board.object_points()
+    f0 = _consistency_residuals(X, T_base_tool, T_cam_board, P)
+    J = np.empty((f0.size, 6))
+    for k in range(6):
+        h = 1e-7 if k < 3 else 1e-5
+        dx = np.zeros(6)
+        dx[k] = h
+        J[:, k] = (_consistency_residuals(X @ _delta(dx), T_base_tool, T_cam_board, P) - f0) / h
+    H = J.T @ J / (len(T_base_tool) * len(P))
+    w, U = np.linalg.eigh(0.5 * (cov + cov.T))
+    half = U @ np.diag(np.sqrt(np.clip(w, 0.0, None))) @ U.T
+    lam = np.clip(np.linalg.eigvalsh(half @ H @ half), 0.0, None)
+    mean, var = float(lam.sum()), float(2.0 * np.sum(lam**2))
+    if mean <= 0.0:
+        return {"expected_mm2": 0.0, "margin_mm2": 0.0}
+    a, nu = var / (2.0 * mean), 2.0 * mean**2 / var
+    return {"expected_mm2": mean, "margin_mm2": float(a * 2.0 * gammaincinv(nu / 2.0, quantile))}
 
 
 def check_motion(A: np.ndarray, names: list[str] | None = None) -> dict[str, float]:
@@ -602,10 +678,14 @@ def solve_handeye(
     T_base_tool: np.ndarray,
     names: list[str],
     *,
-    angle_tolerance_deg: float = 0.05,
+    mismatch_k: float = MISMATCH_K,
     bias_correction: bool = True,
 ) -> HandEye:
-    """All methods and the refined X from measured points (V, N, 2) and arm poses (V, 4, 4)."""
+    """All methods and the chosen X from measured points (V, N, 2) and arm poses (V, 4, 4).
+
+    Motion pairs whose rotation-angle mismatch exceeds ``mismatch_k`` robust sigmas of all
+    pairs' mismatches are rejected (module docstring, step 2).
+    """
     V = len(points)
     if V < 3:
         raise CalibrationError(f"hand-eye calibration needs at least 3 views with the board found, got {V}")
@@ -619,15 +699,18 @@ def solve_handeye(
     all_pairs = list(itertools.combinations(range(V), 2))
     A, B = motion_pairs(T_base_tool, Tc, all_pairs)
     thA, thB = rotation_angle(A[:, :3, :3]), rotation_angle(B[:, :3, :3])
-    keep = np.abs(thA - thB) <= np.radians(angle_tolerance_deg)
+    sigma_m = mismatch_sigma(thA, thB)
+    tol = mismatch_k * sigma_m
+    keep = np.abs(thA - thB) <= tol
     rejected = [
         {"pair": [names[i], names[j]], "theta_A_deg": float(np.degrees(thA[k])),
          "theta_B_deg": float(np.degrees(thB[k]))}
         for k, (i, j) in enumerate(all_pairs) if not keep[k]
     ]
     for r in rejected:
-        log.warning("hand-eye pair %s rejected: rotation angles %.4f vs %.4f deg differ by more than %g deg",
-                    r["pair"], r["theta_A_deg"], r["theta_B_deg"], angle_tolerance_deg)
+        log.warning("hand-eye pair %s rejected: rotation angles %.4f vs %.4f deg differ by more than "
+                    "%.4g deg (%g robust sigmas of all pairs' mismatches)",
+                    r["pair"], r["theta_A_deg"], r["theta_B_deg"], np.degrees(tol), mismatch_k)
     # a view in more rejected than accepted pairs is the culprit (its arm pose or its image):
     # it is left out of everything that uses absolute poses (OpenCV, the refinement)
     bad_count = np.zeros(V, dtype=int)
@@ -648,8 +731,9 @@ def solve_handeye(
     if keep.sum() < 2 or use.sum() < 3:
         raise CalibrationError(
             f"hand-eye calibration: only {int(keep.sum())} of {len(all_pairs)} motion pairs have "
-            f"matching rotation angles (|theta_A - theta_B| <= {angle_tolerance_deg:g} deg); "
-            f"check that poses.csv matches the images"
+            f"matching rotation angles (|theta_A - theta_B| <= {np.degrees(tol):.4g} deg, "
+            f"{mismatch_k:g} robust sigmas of all pairs' mismatches); check that poses.csv matches "
+            f"the images"
         )
     motion = check_motion(A[keep])
     Ak, Bk = A[keep], B[keep]
@@ -681,9 +765,13 @@ def solve_handeye(
     # the floors lie far below any real noise; they keep exact (synthetic) data well conditioned
     sigma_px = max(float(np.sqrt(np.mean([f.rms_px**2 for f in fits]) / 2 * n_obs / (n_obs - 6))),
                    SIGMA_FLOORS["image_px"])
-    s_mm, s_rad, Tbb0 = arm_noise_estimate(X_ck, T_base_tool, Tc)
+    # the refinement starts from the algebraic solution the views agree with best
+    algebraic = ["chou_kamel", *(m for m in OPENCV_METHODS if "T_tool_cam" in methods[m])]
+    start = min(algebraic, key=lambda m: methods[m]["board_consistency_mm"])
+    X_start = methods[start]["T_tool_cam"]
+    s_mm, s_rad, Tbb0 = arm_noise_estimate(X_start, T_base_tool, Tc)
     s_mm, s_rad = max(s_mm, SIGMA_FLOORS["arm_mm"]), max(s_rad, SIGMA_FLOORS["arm_rad"])
-    plain = refine_handeye(camera, board, pts, T_base_tool, X_ck, Tbb0, bias_correction=bias_correction)
+    plain = refine_handeye(camera, board, pts, T_base_tool, X_start, Tbb0, bias_correction=bias_correction)
     record("reprojection", plain.X)
     methods["reprojection"]["reprojection_rms_px"] = plain.rms_px
     # the pose comparison charges the board poses' own error to the arm: the refinement
@@ -713,6 +801,15 @@ def solve_handeye(
         "arm_corrections_rms_mm": float(np.sqrt(np.mean(ref.arm_corrections[:, 3:] ** 2))),
         "arm_corrections_rms_rad": float(np.sqrt(np.mean(ref.arm_corrections[:, :3] ** 2))),
     }
+    selection = select_estimate(methods, ref.covariance_X, T_base_tool, Tc, board)
+    selection["refinement_start"] = start
+    chosen = selection["method"]
+    if chosen != "refined":
+        log.warning("hand-eye: %s chosen over the refined X: its board consistency %.4f mm beats the "
+                    "refined %.4f mm by more than X's uncertainty explains (%.4f mm^2 margin)",
+                    chosen, methods[chosen]["board_consistency_mm"],
+                    methods["refined"]["board_consistency_mm"], selection["margin_mm2"])
+        X = methods[chosen]["T_tool_cam"]
     view_rms = np.sqrt(np.mean(np.sum(res**2, -1), -1))
     extra = {
         "methods": methods,
@@ -721,7 +818,10 @@ def solve_handeye(
             "total": len(all_pairs),
             "used": int(keep.sum()),
             "rejected": int((~keep).sum()),
-            "angle_tolerance_deg": angle_tolerance_deg,
+            "angle_tolerance_deg": float(np.degrees(tol)),
+            "mismatch_k": mismatch_k,
+            "mismatch_sigma_deg": float(np.degrees(sigma_m)),
+            "mismatch_rms_deg": float(np.degrees(np.sqrt(np.mean((thA - thB) ** 2)))),
             "rejected_pairs": rejected,
             "rejected_views": rejected_views,
             **motion,
@@ -735,8 +835,45 @@ def solve_handeye(
         ],
         "residuals": {n: r for n, r in zip(names, res, strict=True)},
         "reprojection_rms_px": methods["refined"]["reprojection_rms_px"],
+        "selection": selection,
     }
-    return HandEye(X, "refined", extra)
+    return HandEye(X, chosen, extra)
+
+
+def select_estimate(
+    methods: dict[str, dict[str, Any]], cov_X: np.ndarray, T_base_tool: np.ndarray,
+    T_cam_board: np.ndarray, board: Board,
+) -> dict[str, Any]:
+    """The final method by board consistency on the views (module docstring, step 5).
+
+    The refined X stays unless a method's squared consistency is lower than the refined's by
+    more than :func:`consistency_margin` of the refined X's covariance; then the method with
+    the best consistency wins. Returns the winner, the scores and the comparison with the best
+    OpenCV method.
+    """
+    scores = {m: v["board_consistency_mm"] for m, v in methods.items() if "board_consistency_mm" in v}
+    ref = scores["refined"]
+    best = min(scores, key=scores.get)
+    margin = consistency_margin(methods["refined"]["T_tool_cam"], cov_X, T_base_tool, T_cam_board, board)
+    chosen = best if ref**2 - scores[best] ** 2 > margin["margin_mm2"] else "refined"
+    opencv = [m for m in OPENCV_METHODS if m in scores]
+    out: dict[str, Any] = {
+        "method": chosen,
+        "rule": "refined unless a method's squared board consistency is lower by more than the "
+                f"{100 * SELECTION_QUANTILE:g} % quantile of what the refined X's covariance explains",
+        "board_consistency_mm": {m: scores[m] for m in sorted(scores)},
+        "best_consistency_method": best,
+        "expected_excess_mm2": margin["expected_mm2"],
+        "margin_mm2": margin["margin_mm2"],
+        # the consistency the refined X may exceed the least-scatter one by, at its own level
+        "margin_mm": float(np.sqrt(scores[best] ** 2 + margin["margin_mm2"]) - scores[best]),
+    }
+    if opencv:
+        b = min(opencv, key=scores.get)
+        c = scores[chosen]
+        out.update(best_opencv=b, best_opencv_consistency_mm=scores[b],
+                   vs_best_opencv_mm=c - scores[b], vs_best_opencv_percent=100.0 * (c / scores[b] - 1.0))
+    return out
 
 
 def run_calibrate_handeye(
@@ -744,7 +881,7 @@ def run_calibrate_handeye(
     camera_json: str | Path,
     out: str | Path,
     *,
-    angle_tolerance_deg: float = 0.05,
+    mismatch_k: float = MISMATCH_K,
     threads: int = 1,
 ) -> HandEye:
     """Stage: solve X = T_tool_cam from ``calibration/handeye`` and write ``handeye.json``."""
@@ -772,13 +909,15 @@ def run_calibrate_handeye(
         )
     he = solve_handeye(
         camera, board, np.array([dets[k].points for k in use]), cap.handeye_T_base_tool[use],
-        [names[k] for k in use], angle_tolerance_deg=angle_tolerance_deg,
+        [names[k] for k in use], mismatch_k=mismatch_k,
     )
     he.extra["skipped_views"] = skipped
     he.save(out)
-    m = he.extra["methods"]
-    log.info("hand-eye: %d views, %d/%d pairs used; reprojection RMS %.4f px; board consistency "
-             "Chou-Kamel %.4f mm, refined %.4f mm", len(use), he.extra["pairs"]["used"],
-             he.extra["pairs"]["total"], he.extra["reprojection_rms_px"],
-             m["chou_kamel"]["board_consistency_mm"], m["refined"]["board_consistency_mm"])
+    sel, pairs = he.extra["selection"], he.extra["pairs"]
+    log.info("hand-eye: %d views, %d/%d pairs used (mismatch sigma %.4f deg, cut %.4f deg); "
+             "reprojection RMS %.4f px; %s chosen, board consistency %.4f mm (best OpenCV: %s "
+             "%.4f mm)", len(use), pairs["used"], pairs["total"], pairs["mismatch_sigma_deg"],
+             pairs["angle_tolerance_deg"], he.extra["reprojection_rms_px"], he.method,
+             sel["board_consistency_mm"][he.method], sel.get("best_opencv", "-"),
+             sel.get("best_opencv_consistency_mm", float("nan")))
     return he

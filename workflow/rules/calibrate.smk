@@ -68,7 +68,7 @@ rule calibrate_handeye:
     output:
         handeye="data/interim/{capture}/calibration/handeye.json",
     params:
-        angle_tolerance_deg=config["handeye"]["angle_tolerance_deg"],
+        mismatch_k=config["handeye"]["mismatch_k"],
     log:
         "logs/{capture}/calibrate_handeye.log",
     benchmark:
@@ -80,5 +80,5 @@ rule calibrate_handeye:
         "../envs/crossline.yaml"
     shell:
         "crossline calibrate-handeye data/raw/{wildcards.capture} --camera {input.camera} "
-        "--out {output.handeye} --angle-tolerance-deg {params.angle_tolerance_deg} "
+        "--out {output.handeye} --mismatch-k {params.mismatch_k} "
         "--threads {threads} > {log} 2>&1"
