@@ -196,6 +196,11 @@ def _hist(ax: Any, values: np.ndarray, bins: int, xlabel: str, clip: float = 0.1
     """Histogram of values over their 0.1–99.9 % range, at most ±8 robust sigmas wide (the rest
     counted in the end bins)."""
     v = np.asarray(values, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    if v.size == 0:  # nothing measured (e.g. a gauge whose second face was not found)
+        ax.text(0.5, 0.5, "no values to show", ha="center", va="center", transform=ax.transAxes)
+        ax.set_xlabel(xlabel)
+        return np.zeros(0, dtype=np.int64), np.zeros(1)
     lo, hi = np.percentile(v, [clip, 100 - clip])
     # heavy tails (edges, stray points) would squash the body into a few bins: at most
     # 8 robust sigmas either side of the median
