@@ -20,6 +20,7 @@ from crossline.geometry import invert_transform, transform_from_pose
 from crossline.io.capture import check_capture, open_capture
 from crossline.sim import simulate
 from crossline.sim.presets import PRESETS, CalibrationSpec
+from crossline.sim.random_rig import RANDOM_PRESETS, SENSORS, random_rig, stripe_segment
 
 TRUTH_KEYS = {"camera", "lasers", "T_tool_cam", "T_base_board", "scans"}
 CENTRELINE_COLUMNS = ["frame", "laser", "u", "v", "x_cam", "y_cam", "z_cam", "visible"]
@@ -256,3 +257,251 @@ def test_written_pngs_read_back_identically_with_every_decoder(tmp_path, dtype):
     png_info(path)  # chunks and CRCs are valid
     write_png(tmp_path / "g.png", img)
     assert (tmp_path / "g.png").read_bytes() == data  # same array, same bytes
+
+
+# ----------------------------------------------------------------------------- random rigs and options
+
+RIG_KEYS = {"format", "sensor", "scan_window", "frame_rate", "board"}
+
+
+def _camera(rig) -> Camera:
+    s = rig.sensor
+    return Camera(np.array(s.K), np.array(s.dist), (s.width, s.height))
+
+
+def _tiny_rig(rig, frames: int = 3, laser_poses: int = 1):
+    """A rig's capture in its smallest form: one view of each kind, a few frames per scan."""
+    cal = replace(rig.quick_calibration, camera_views=1, laser_poses=laser_poses, handeye_views=1)
+    return replace(rig, quick_calibration=cal, quick_frames=frames)
+
+
+def _direction_deg(u: np.ndarray, v: np.ndarray) -> float:
+    """Direction (0-180 deg, image u right, v down) of the principal axis of points."""
+    P = np.column_stack([u, v]).astype(np.float64)
+    P -= P.mean(0)
+    d = np.linalg.eigh(P.T @ P)[1][:, -1]
+    return float(np.degrees(np.arctan2(d[1], d[0])) % 180.0)
+
+
+def _angle_diff(a: float, b: float) -> float:
+    d = abs(a - b) % 180.0
+    return min(d, 180.0 - d)
+
+
+@pytest.mark.parametrize("small", [False, True])
+def test_random_rigs_are_rigs_an_engineer_could_build(small):
+    """Twelve draws: every quantity within its stated range, independently recomputed where
+    it can be (triangulation angle, stripe direction, the stripes crossing the window)."""
+    rigs = [random_rig(seed, small=small) for seed in range(12)]
+    dists, kinds, patterns, boards = [], set(), set(), set()
+    for seed, rig in enumerate(rigs):
+        s, d = rig.sensor, rig.draw
+        mp = s.width * s.height / 1e6
+        assert (s.width, s.height) in {(w, h) for w, h, _ in SENSORS}
+        assert 1.0 <= mp <= 12.0 and (mp <= 2.4 or not small)
+        assert s.data_bits in (8, 10, 12, 16) and s.bit_depth == (8 if s.data_bits == 8 else 16)
+        x, y, w, h = s.scan_window
+        assert 0 <= x and x + w <= s.width and 0 <= y and y + h <= s.height and w >= 0.8 * s.width - 16
+        cam = _camera(rig)
+        D = d["working_distance_mm"]
+        assert 70 <= D <= 400 and 40 <= d["field_mm"] <= 150
+        assert 0.002 <= abs(d["corner_distortion"]) <= 0.05
+        dists.append(np.sign(d["corner_distortion"]))
+        for name, las in rig.lasers.items():
+            n = np.asarray(las.normal)
+            # the stripe through the sensor's middle region at depth D: its direction as drawn,
+            # and the angle between its plane and the viewing rays there
+            seg = stripe_segment(cam, las, D)
+            mid = seg[np.argmin(np.linalg.norm(seg - [cam.cx, cam.cy], axis=1))]
+            assert np.linalg.norm(mid - [cam.cx, cam.cy]) < 0.13 * s.height + 2
+            near = seg[np.linalg.norm(seg - mid, axis=1) < 40]
+            assert _angle_diff(_direction_deg(near[:, 0], near[:, 1]), d["stripe_angle_deg"][name]) < 1.0
+            ray = cam.rays(mid[None])[0]
+            tri = np.degrees(np.arcsin(abs(n @ ray)))
+            assert 19.9 <= tri <= 45.1 and abs(tri - d["triangulation_deg"][name]) < 0.5
+            # both stripes cross the scan window over the measuring range
+            for z in d["window_depths_mm"]:
+                seg = stripe_segment(cam, las, z, s.scan_window)
+                assert np.linalg.norm(seg[-1] - seg[0]) >= 0.8 * min(w, h), (seed, name, z)
+            assert 3.0 * 0.9 <= 4 * np.hypot(las.waist_mm / 2 / np.sqrt(1 - (n @ ray) ** 2) * cam.fx / D,
+                                              s.psf_sigma_px) <= 12.0 * 1.1
+            assert 0.2 * 0.8 <= las.peak_electrons * 0.8 / s.full_well_e <= 1.0 * 1.2
+        cross = _angle_diff(*d["stripe_angle_deg"].values())
+        assert 49.9 <= cross <= 90.0
+        kinds.add(d["cross"])
+        b = rig.board.board
+        boards.add((b.pattern, b.circles if b.pattern != "chessboard" else None))
+        ex, ey = b.extent()
+        frame_h = rig.calibration.depth_range_mm[0] * s.height / cam.fy
+        assert 0.25 <= max(ex, ey) / frame_h <= 0.9  # the board fills a sensible part of the view
+        assert b.rows != b.cols or b.pattern == "asymmetric"
+        patterns.add(rig.pattern)
+        for spec in rig.scans:
+            assert abs(spec.distance_mm - D) <= 0.5 * d["measuring_range_mm"] + 1e-9
+        assert 0.005 <= rig.arm.precision_mm <= 0.06
+    assert {-1.0, 1.0} <= set(dists)  # barrel and pincushion
+    assert len(kinds) >= 2 and len(patterns) >= 3 and len(boards) >= 3
+    # same seed, same rig; another seed, another rig
+    assert repr(random_rig(3, small=small)) == repr(rigs[3])
+    assert repr(rigs[4]) != repr(rigs[3])
+
+
+def _rig_yaml(root: Path) -> dict:
+    return yaml.safe_load((root / "rig.yaml").read_text())
+
+
+def _images(root: Path, sub: str) -> list[Path]:
+    return sorted(p for p in (root / sub).rglob("*") if p.suffix in (".png", ".jpg", ".tif", ".bmp"))
+
+
+@pytest.mark.slow
+def test_random_rig_captures_follow_the_contract_and_repeat_byte_for_byte(tmp_path):
+    """Two small random rigs: rig.yaml and truth.json keys, data within the ADC's bits, the
+    stripes at the drawn angles; the same seed renders the same bytes in 1 or 2 processes."""
+    found_bits = set()
+    for seed in (6, 7):  # 12 and 8 bits, 1.3 and 1.0 MP
+        rig = _tiny_rig(random_rig(seed, small=True), laser_poses=2)  # the reader's minimum
+        root = simulate(tmp_path / f"r{seed}", preset=rig, seed=seed, quick=True,
+                        scans=["plate"], progress=False)
+        ry = _rig_yaml(root)
+        assert RIG_KEYS | {"scans"} <= set(ry) and "lasers" not in ry
+        bits = rig.sensor.data_bits
+        assert ry["sensor"]["bit_depth"] == rig.sensor.bit_depth
+        assert ry["sensor"].get("data_bits", ry["sensor"]["bit_depth"]) == bits
+        assert ("data_bits" in ry["sensor"]) == (bits not in (8, 16))
+        truth = json.loads((root / "truth.json").read_text())
+        assert TRUTH_KEYS <= set(truth) and truth["rig_draw"]["seed"] == seed
+        assert truth["preset"] == "random-small"
+        check = check_capture(root)
+        assert check["views"]["camera"] == 1 and check["scans"]["plate"]["frames"] == 3
+        top = 0
+        for p in _images(root, "calibration") + _images(root, "scans"):
+            img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+            assert img.dtype == (np.uint8 if bits == 8 else np.uint16)
+            top = max(top, int(img.max()))
+        assert 2 ** (bits - 2) < top <= 2**bits - 1  # the ADC's range, not the container's
+        found_bits.add(bits)
+        # the stripes run at the drawn angles (the plate and the view are tilted by < 30 deg)
+        cl = pd.read_parquet(root / "truth" / "plate_centrelines.parquet")
+        cl = cl[cl["visible"] & (cl["surface"] == "plate")]
+        for laser, want in truth["rig_draw"]["stripe_angle_deg"].items():
+            c = cl[cl["laser"] == laser]
+            c = c[c["frame"] == c["frame"].iloc[0]]
+            assert len(c) > 100
+            assert _angle_diff(_direction_deg(c["u"], c["v"]), want) < 15.0, (seed, laser)
+    assert len(found_bits) == 2
+    # a board view and scan frames, in one process and in two
+    twice = [simulate(tmp_path / f"again{t}", preset=_tiny_rig(random_rig(7, small=True), frames=2),
+                      seed=7, quick=True, scans=["plate"], parts=["camera", "scans"], progress=False,
+                      threads=t) for t in (1, 2)]
+    assert len(_digest(twice[0])) >= 6 and _digest(twice[0]) == _digest(twice[1])
+    # through the name: the same rig as the function's
+    named = simulate(tmp_path / "named", preset="random-small", seed=7, quick=True, frames=1,
+                     scans=["plate"], parts=["scans"], progress=False)
+    assert json.loads((named / "truth.json").read_text())["rig_draw"] == random_rig(7, small=True).draw
+    assert set(RANDOM_PRESETS) == {"random", "random-small"}
+
+
+@pytest.mark.slow
+def test_one_laser_colour_jpeg_capture(tmp_path):
+    """lasers=("A",), JPEG, a red laser on a colour sensor: rig.yaml says so, no laser B
+    anywhere, every frame A, frames decode to the window's size in colour, the stripe mainly
+    in red and the board in every channel."""
+    rig = _tiny_rig(random_rig(4, small=True))
+    root = simulate(tmp_path / "c", preset=rig, seed=4, quick=True, scans=["plate"], lasers=("A",),
+                    image_format="jpeg", jpeg_quality=90, colour="red", parts=["camera", "lasers", "scans"],
+                    progress=False)
+    ry = _rig_yaml(root)
+    assert ry["lasers"] == ["A"] and ry["sensor"]["channel"] == "red"
+    assert ry["sensor"]["bit_depth"] == 8 and "data_bits" not in ry["sensor"]
+    assert not (root / "calibration" / "laser_B").exists() and not (root / "calibration" / "handeye").exists()
+    truth = json.loads((root / "truth.json").read_text())
+    assert set(truth["lasers"]) == {"A"} and 600 <= truth["lasers"]["A"]["wavelength_nm"] <= 700
+    assert truth["capture_options"]["image_format"] == "jpeg"
+    frames = pd.read_csv(root / "scans" / "plate" / "frames.csv")
+    assert set(frames["lasers"]) == {"A"} and len(frames) == 3
+    files = sorted((root / "scans" / "plate" / "frames").iterdir())
+    assert [p.name for p in files] == [f"{k:06d}.jpg" for k in range(3)]
+    x, y, w, h = rig.sensor.scan_window
+    for p in files:
+        assert p.read_bytes()[:2] == b"\xff\xd8"  # a JPEG
+        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        assert img.shape == (h, w, 3) and img.dtype == np.uint8
+    cl = pd.read_parquet(root / "truth" / "plate_centrelines.parquet")
+    assert set(cl["laser"]) == {"A"}
+    c = cl[cl["visible"] & (cl["frame"] == 1)]
+    img = cv2.imread(str(files[1]))[:, :, ::-1].astype(np.float64)  # red, green, blue
+    rows = np.clip(np.rint(c["v"].to_numpy()).astype(int) - y, 0, h - 1)
+    cols = c["u"].to_numpy() - x
+    lift = img[rows, cols] - np.median(img.reshape(-1, 3), axis=0)
+    red, green, blue = np.median(lift, axis=0)
+    # JPEG's half-resolution chroma lends a thin red line some green and blue: still mainly red
+    assert red > 20 and green < 0.25 * red and blue < 0.25 * red
+    view = cv2.imread(str(root / "calibration" / "camera" / "view_00.jpg"))
+    contrast = np.percentile(view, 99, axis=(0, 1)) - np.percentile(view, 1, axis=(0, 1))
+    assert contrast.min() > 0.6 * contrast.max() and contrast.min() > 15  # the board in every channel
+    lp = sorted(p.name for p in (root / "calibration" / "laser_A").iterdir())
+    assert lp == ["pose_00_board.jpg", "pose_00_laser.jpg"]
+
+
+@pytest.mark.slow
+def test_laser_always_on_calibration_only_tiff_of_12_bit_data(tmp_path):
+    """laser_always_on, calibration_only, TIFF with 12-bit data in 16-bit samples."""
+    rig = _tiny_rig(random_rig(8, small=True))
+    root = simulate(tmp_path / "t", preset=rig, seed=8, quick=True, laser_always_on=True,
+                    calibration_only=True, image_format="tiff", data_bits=12, progress=False)
+    ry = _rig_yaml(root)
+    view = cv2.imread(str(root / "calibration" / "camera" / "view_00.tif"), cv2.IMREAD_UNCHANGED)
+    assert "scans" not in ry and not (root / "scans").exists()
+    assert ry["sensor"]["bit_depth"] == 16 and ry["sensor"]["data_bits"] == 12
+    for laser in "AB":
+        names = sorted(p.name for p in (root / "calibration" / f"laser_{laser}").iterdir())
+        assert names == ["pose_00_laser.tif"]
+        img = cv2.imread(str(root / "calibration" / f"laser_{laser}" / names[0]), cv2.IMREAD_UNCHANGED)
+        assert img.dtype == np.uint16 and img.max() <= 4095
+        # one image holds the board in room light (half the camera views' light) and the stripe
+        black = rig.sensor.black_dn(12)
+        light = (np.percentile(img, 99) - black) / (np.percentile(view, 99) - black)
+        assert 0.3 < light < 0.8 and img.max() > 1.5 * np.percentile(img, 99)
+    assert (root / "calibration" / "camera" / "view_00.tif").is_file()
+    poses = (root / "calibration" / "handeye" / "poses.csv").read_text().splitlines()
+    assert poses[1].startswith("pose_00.tif,")
+    truth = json.loads((root / "truth.json").read_text())
+    assert truth["scans"] == {} and truth["sensor"]["data_bits"] == 12
+    assert truth["capture_options"]["laser_always_on"] is True
+
+
+def test_arm_noise_scale_multiplies_the_reported_pose_errors(tmp_path):
+    """The same draws, K times larger: reported-minus-true poses of a scan and the model's sigma."""
+    errs = {}
+    for k in (1.0, 10.0):
+        root = simulate(tmp_path / f"k{k:g}", preset=_tiny_rig(random_rig(7, small=True), frames=4),
+                        seed=7, quick=True,
+                        scans=["gauge"], parts=["scans"], image_format="bmp", arm_noise_scale=k,
+                        progress=False)
+        assert sorted(p.name for p in root.iterdir()) == ["rig.yaml", "scans", "truth", "truth.json"]
+        assert next((root / "scans" / "gauge" / "frames").iterdir()).suffix == ".bmp"
+        truth = json.loads((root / "truth.json").read_text())
+        errs[k] = (pd.read_parquet(root / "truth" / "gauge_poses.parquet")[["err_x", "err_y", "err_rz"]]
+                   .to_numpy(), truth["arm_noise"]["sigma_axis_mm"])
+    assert np.allclose(errs[10.0][0], 10.0 * errs[1.0][0], rtol=1e-9, atol=0)
+    assert errs[10.0][1] == pytest.approx(10.0 * errs[1.0][1])
+    assert np.abs(errs[1.0][0]).max() > 0
+
+
+def test_options_are_refused_with_what_was_expected(tmp_path):
+    with pytest.raises(CrosslineError, match=r"lasers \['B'\]"):
+        simulate(tmp_path / "x", lasers=("B",), progress=False)
+    with pytest.raises(CrosslineError, match="laser pattern"):
+        simulate(tmp_path / "x", lasers=("A",), pattern=["A", "AB"], progress=False)
+    with pytest.raises(CrosslineError, match="8-bit data only"):
+        simulate(tmp_path / "x", image_format="jpeg", bit_depth=16, progress=False)
+    with pytest.raises(CrosslineError, match="colour 'purple'"):
+        simulate(tmp_path / "x", colour="purple", progress=False)
+    with pytest.raises(CrosslineError, match="parts"):
+        simulate(tmp_path / "x", parts=["camera", "arm"], progress=False)
+    with pytest.raises(CrosslineError, match="data bits"):
+        simulate(tmp_path / "x", bit_depth=8, data_bits=12, progress=False)
+    with pytest.raises(CrosslineError, match="unknown preset"):
+        simulate(tmp_path / "x", preset="randm", progress=False)
+    assert not list(tmp_path.iterdir())
