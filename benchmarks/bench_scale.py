@@ -168,32 +168,45 @@ def run_size(src: Path, n: int, chunks: int, stages: tuple[str, ...]) -> dict:
                              if isinstance(v, (int, float, str))}
     files = [interim / "stripes" / f"{SCAN}.parquet", interim / "points" / f"{SCAN}.parquet",
              processed / f"{SCAN}.ply"]
-    res["sizes_mb"] = {p.name: round(p.stat().st_size / 1e6, 1) for p in files if p.is_file()}
+    res["sizes_mb"] = {str(p.relative_to(work)): round(p.stat().st_size / 1e6, 1)
+                       for p in files if p.is_file()}
     shutil.rmtree(work / "interim" / "stripes", ignore_errors=True)  # GBs at 50 k frames
     return res
 
 
-def plot(results: list[dict], path: Path) -> None:
-    """Wall time and peak RSS per stage against frames (log-log)."""
+def plot(results: list[dict], path: Path, extrapolate_to: int = 50000) -> None:
+    """Wall time, CPU time and peak RSS per stage against frames; the peak RSS also drawn as
+    the straight line through the measured sizes, out to ``extrapolate_to`` frames (dashed)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import numpy as np
 
-    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2))
-    ns = [r["frames"] for r in results]
-    for stage in STAGES:
+    fig, (a, c, b) = plt.subplots(1, 3, figsize=(15, 4.4))
+    ns = np.array([r["frames"] for r in results], float)
+    for k, stage in enumerate(STAGES):
         if not all(stage in r["stages"] for r in results):
             continue
-        a.plot(ns, [r["stages"][stage]["wall_s"] for r in results], "o-", label=stage)
-        b.plot(ns, [r["stages"][stage]["peak_rss_mb"] / 1024 for r in results], "o-", label=stage)
+        col = f"C{k}"
+        a.plot(ns, [r["stages"][stage]["wall_s"] for r in results], "o-", color=col, label=stage)
+        c.plot(ns, [r["stages"][stage]["cpu_s"] for r in results], "o-", color=col, label=stage)
+        gb = np.array([r["stages"][stage]["peak_rss_mb"] / 1024 for r in results])
+        b.plot(ns, gb, "o-", color=col, label=stage)
+        if len(ns) >= 2 and extrapolate_to > ns[-1]:
+            slope, icpt = np.polyfit(ns, gb, 1)
+            xs = np.array([ns[-1], extrapolate_to])
+            b.plot(xs, icpt + slope * xs, "--", color=col, lw=1)
     a.set(xscale="log", yscale="log", xlabel="frames in the scan", ylabel="wall time, s",
-          title="wall time per stage (shared 2-core machine)")
-    b.set(xscale="log", xlabel="frames in the scan", ylabel="peak RSS, GB", title="peak memory per stage")
+          title="wall time per stage (2 cores shared with others)")
+    c.set(xscale="log", yscale="log", xlabel="frames in the scan", ylabel="CPU time, s",
+          title="CPU time per stage (user + sys)")
+    b.set(xscale="log", yscale="log", xlabel="frames in the scan", ylabel="peak RSS, GB",
+          title="peak memory per stage (dashed: linear extrapolation)")
     b.axhline(4.0, color="k", ls=":", lw=1, label="4 GB target")
-    for ax in (a, b):
+    for ax in (a, c, b):
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
@@ -208,8 +221,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--budget-s", type=float, default=float("inf"),
                     help="skip a size whose predicted time exceeds the time left")
     ap.add_argument("--tag", default="", help="suffix of the result files")
+    ap.add_argument("--replot", action="store_true", help="only redraw the plot from scale<tag>.json")
     a = ap.parse_args(argv)
     RESULTS.mkdir(parents=True, exist_ok=True)
+    if a.replot:
+        saved = json.loads((RESULTS / f"scale{a.tag}.json").read_text())
+        plot(saved["results"], RESULTS / f"scale{a.tag}.png")
+        return 0
     t_start = time.perf_counter()
     src = sensor_capture(a.source_frames)
     stages = tuple(x for x in a.stages.split(",") if x)

@@ -465,6 +465,65 @@ def _timed_pool(items, fn, threads: int) -> float:
     return time.perf_counter() - t0
 
 
+def workflow_run(capture: Path, cal: tuple[Path, Path, Path], root: Path, scan: str, chunks: int,
+                 one_core: bool) -> dict:
+    """extract-stripes (``chunks`` jobs), gather-stripes and triangulate as the workflow runs
+    them, each a fresh process; on 1 core (``taskset -c 0``, jobs one after another, 1 thread)
+    or on both (jobs side by side; 1 thread each when chunked, else 2). Wall and CPU s."""
+    from bench_scale import run_parallel, stage_commands
+
+    n = len(open_capture(capture).scans[scan].frames)
+    shutil.rmtree(root, ignore_errors=True)
+    interim, processed = root / "interim", root / "processed"
+    (interim / "stripes" / scan).mkdir(parents=True)
+    (interim / "points").mkdir(parents=True)
+    (interim / "calibration").mkdir(parents=True)
+    for f in cal:
+        shutil.copy(f, interim / "calibration" / f.name)
+    cmds = stage_commands(capture, interim, processed, chunks, scan)
+    pre = ["taskset", "-c", "0"] if one_core else []
+    ext = cmds["extract"]
+    if chunks > 1 or one_core:
+        ext = [[*c[:-1], "1"] for c in ext]  # 1 thread per job
+    out: dict = {}
+    if one_core:  # the jobs one after the other on one core
+        rs = [run_parallel([c], [root / f"extract{i}.log"], pre)[0] for i, c in enumerate(ext)]
+        out["extract"] = {"wall_s": sum(r["wall_s"] for r in rs), "cpu_s": sum(r["cpu_s"] for r in rs)}
+    else:
+        rs = run_parallel(ext, [root / f"extract{i}.log" for i in range(len(ext))], pre)
+        out["extract"] = {"wall_s": max(r["wall_s"] for r in rs), "cpu_s": sum(r["cpu_s"] for r in rs)}
+    for st in ("gather", "triangulate"):
+        r = run_parallel(cmds[st], [root / f"{st}.log"], pre)[0]
+        out[st] = {"wall_s": r["wall_s"], "cpu_s": r["cpu_s"]}
+    out["wall_s"] = sum(v["wall_s"] for v in out.values())
+    out["frames_per_s"] = n / out["wall_s"]
+    return out
+
+
+def speedup(capture: Path, cal: tuple[Path, Path, Path], work: Path, rounds: int, say) -> dict:
+    """Scatter/gather on a long scan: 1 core against 2 chunk jobs side by side (and 1 job of 2
+    threads), interleaved rounds; wall and CPU time."""
+    scan = _scan_of(capture)
+    n = len(open_capture(capture).scans[scan].frames)
+    runs: dict = {"one_core": [], "two_chunks": [], "one_job_two_threads": []}
+    for r in range(rounds):
+        runs["one_core"].append(workflow_run(capture, cal, work / "su-1core", scan, 1, True))
+        runs["two_chunks"].append(workflow_run(capture, cal, work / "su-2chunks", scan, 2, False))
+        runs["one_job_two_threads"].append(workflow_run(capture, cal, work / "su-2threads", scan, 1, False))
+        say(f"  round {r + 1}: " + ", ".join(
+            f"{k} {v[-1]['frames_per_s']:.1f} frames/s (extract {v[-1]['extract']['wall_s']:.0f} s wall "
+            f"{v[-1]['extract']['cpu_s']:.0f} s CPU)" for k, v in runs.items()))
+    med = {k: float(np.median([x["frames_per_s"] for x in v])) for k, v in runs.items()}
+    ratios = [b["frames_per_s"] / a["frames_per_s"] for a, b in zip(runs["one_core"], runs["two_chunks"],
+                                                                      strict=True)]
+    out = {"capture": str(capture), "frames": n, "runs": runs, "frames_per_s": med,
+           "speedup_1_to_2_cores": float(np.median(ratios)), "ratios": ratios}
+    say(f"  scatter/gather on {n} frames: 1 core {med['one_core']:.1f} frames/s, 2 chunk jobs "
+        f"{med['two_chunks']:.1f}, 1 job of 2 threads {med['one_job_two_threads']:.1f}: speed-up 1 -> 2 "
+        f"cores {out['speedup_1_to_2_cores']:.2f}x (rounds {', '.join(f'{x:.2f}' for x in ratios)})")
+    return out
+
+
 def throughput(capture: Path, cal: tuple[Path, Path, Path], work: Path, rounds: int,
                say) -> dict:
     """Decode-only against the scan stages as the workflow runs them, on the same frames, in
@@ -481,7 +540,6 @@ def throughput(capture: Path, cal: tuple[Path, Path, Path], work: Path, rounds: 
       decoded from memory against the PNG bytes (what a faster lossless storage buys).
     """
     import imagecodecs
-    from bench_scale import run_parallel, stage_commands
 
     from crossline.scan.frames import map_frames, read_frame
 
@@ -501,39 +559,17 @@ def throughput(capture: Path, cal: tuple[Path, Path, Path], work: Path, rounds: 
         f"{png_mb:.3f} MB each (mean), rig {rate:g} frames/s; machine shared with other users")
     read_frame(paths[0], shape, transposed=True)  # compile / load the cached kernels
 
+    decode_cpu: list[float] = []
+
     def decode_only(threads: int) -> float:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         for _ in map_frames(paths, lambda i, im: None, shape=shape, threads=threads, transposed=True):
             pass
+        decode_cpu.append(time.process_time() - c0)
         return time.perf_counter() - t0
 
     def workflow(tag: str, chunks: int, one_core: bool) -> dict:
-        root = work / f"tp-{tag}"
-        shutil.rmtree(root, ignore_errors=True)
-        interim, processed = root / "interim", root / "processed"
-        (interim / "stripes" / scan).mkdir(parents=True)
-        (interim / "points").mkdir(parents=True)
-        (interim / "calibration").mkdir(parents=True)
-        for f in cal:
-            shutil.copy(f, interim / "calibration" / f.name)
-        cmds = stage_commands(capture, interim, processed, chunks, scan)
-        pre = ["taskset", "-c", "0"] if one_core else []
-        ext = cmds["extract"]
-        if chunks > 1 or one_core:
-            ext = [[*c[:-1], "1"] for c in ext]  # 1 thread per job
-        out: dict = {}
-        if one_core:  # the jobs one after the other on one core
-            rs = [run_parallel([c], [root / f"extract{i}.log"], pre)[0] for i, c in enumerate(ext)]
-            out["extract"] = {"wall_s": sum(r["wall_s"] for r in rs), "cpu_s": sum(r["cpu_s"] for r in rs)}
-        else:
-            rs = run_parallel(ext, [root / f"extract{i}.log" for i in range(len(ext))], pre)
-            out["extract"] = {"wall_s": max(r["wall_s"] for r in rs), "cpu_s": sum(r["cpu_s"] for r in rs)}
-        for st in ("gather", "triangulate"):
-            r = run_parallel(cmds[st], [root / f"{st}.log"], pre)[0]
-            out[st] = {"wall_s": r["wall_s"], "cpu_s": r["cpu_s"]}
-        out["wall_s"] = sum(v["wall_s"] for v in out.values())
-        out["frames_per_s"] = n / out["wall_s"]
-        return out
+        return workflow_run(capture, cal, work / f"tp-{tag}", scan, chunks, one_core)
 
     keys = ("decode_only_s", "decode_only_1thread_s", "e2e", "one_core", "two_chunks")
     runs: dict = {k: [] for k in keys}
@@ -564,6 +600,15 @@ def throughput(capture: Path, cal: tuple[Path, Path, Path], work: Path, rounds: 
     tri = float(np.median([x["triangulate"]["wall_s"] + x["gather"]["wall_s"] for x in e2e]))
     one = float(np.median([x["frames_per_s"] for x in runs["one_core"]]))
     two = float(np.median([x["frames_per_s"] for x in runs["two_chunks"]]))
+    # CPU time, which a load from others does not inflate as it does wall time: the work per
+    # frame, and the throughput 2 cores give when the stages keep both busy
+    e2e_cpu = float(np.median([sum(x[k]["cpu_s"] for k in ("extract", "gather", "triangulate"))
+                               for x in e2e]))
+    dcpu = float(np.median(decode_cpu))
+    res["cpu"] = {"decode_only_ms_per_frame": 1e3 * dcpu / n, "end_to_end_ms_per_frame": 1e3 * e2e_cpu / n,
+                  "extract_ms_per_frame": 1e3 * ext_cpu / n,
+                  "ratio_decode_over_e2e": dcpu / e2e_cpu, "two_core_e2e_frames_per_s": 2 * n / e2e_cpu,
+                  "two_core_decode_frames_per_s": 2 * n / dcpu}
     res.update({"decode_only_frames_per_s": n / dec,
                 "decode_only_1thread_frames_per_s": n / float(np.median(runs["decode_only_1thread_s"])),
                 "end_to_end_frames_per_s": e_fps, "ratio_e2e_over_decode": float(np.median(ratios)),
@@ -602,6 +647,12 @@ def throughput(capture: Path, cal: tuple[Path, Path, Path], work: Path, rounds: 
         f"frames/s = {res['ratio_e2e_over_decode']:.2f}x decode only (rounds: "
         f"{', '.join(f'{x:.2f}' for x in ratios)}), {res['e2e_over_rig_rate']:.2f}x the rig's "
         f"{rate:g} frames/s")
+    c = res["cpu"]
+    say(f"  CPU time per frame: decode only {c['decode_only_ms_per_frame']:.1f} ms, end to end "
+        f"{c['end_to_end_ms_per_frame']:.1f} ms (extract-stripes {c['extract_ms_per_frame']:.1f} ms, "
+        f"process start included): {c['ratio_decode_over_e2e']:.2f}x; on 2 free cores kept busy "
+        f"{c['two_core_decode_frames_per_s']:.0f} vs {c['two_core_e2e_frames_per_s']:.0f} frames/s "
+        f"= {c['two_core_e2e_frames_per_s'] / rate:.2f}x the rig's rate")
     say(f"  extract-stripes used {res['extract_cpu_cores_used']:.2f} cores on average; gather + triangulate "
         f"(one process, one core) are {100 * res['serial_tail_share']:.0f} % of the end-to-end wall time")
     o = res["one_thread_ms_per_frame"]
@@ -703,6 +754,9 @@ def main(argv=None) -> int:
     ap.add_argument("--throughput-only", action="store_true",
                     help="only the throughput section (no accuracy, kernels or memory)")
     ap.add_argument("--rounds", type=int, default=3, help="throughput: interleaved rounds")
+    ap.add_argument("--speedup-frames", type=int, default=0,
+                    help="only the scatter/gather speed-up, on a long scan of this many frames "
+                         "(scan_data.long_capture of the noisy-sensor render)")
     ap.add_argument("--sensor-frames", type=int, default=480,
                     help="throughput: frames of the noisy-sensor render (default 480)")
     ap.add_argument("--no-patterns", dest="patterns", action="store_false",
@@ -721,6 +775,17 @@ def main(argv=None) -> int:
 
     from crossline.io.atomic import write_json
 
+    if a.speedup_frames:
+        from scan_data import long_capture, sensor_capture
+
+        src = sensor_capture(a.sensor_frames)
+        say(f"== scatter/gather speed-up: {a.speedup_frames} frames of {src.name} reused along a long "
+            f"arm path; machine shared with other users")
+        su = speedup(long_capture(src, a.speedup_frames), true_calibration(src, work / f"cal-{src.name}"),
+                     work, a.rounds, say)
+        write_json(RESULTS / "scan_speedup.json", su)
+        (RESULTS / "scan_speedup.txt").write_text("\n".join(lines) + "\n")
+        return 0
     if a.capture is not None:
         tcap = a.capture.resolve()
         tcal = (tcap / "cal" / "camera.json", tcap / "cal" / "lasers.json", tcap / "cal" / "handeye.json") \
