@@ -306,7 +306,9 @@ def test_bad_captures_beside_a_good_one(done_workdir: Path, tmp_path: Path) -> N
     points = interim / "scan_faults/points"
     assert not (points / "gauge.parquet").exists() and not (points / "plate.parquet").exists()
     assert (points / "ball.parquet").is_file() and (points / "part.parquet").is_file()
-    assert not (wd / "reports/scan_faults").exists()
+    # its calibrations are sound, so it gets its certificate; with scans broken, no report
+    assert (wd / "reports/scan_faults/calibration.pdf").is_file()
+    assert not (wd / "reports/scan_faults/accuracy.pdf").exists()
     # nothing of the good capture was redone or changed, no temporary file left anywhere
     after = {k: v for k, v in outputs(wd).items() if "/q/" in k or k.startswith("reports/q/")}
     assert after == before

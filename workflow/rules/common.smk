@@ -120,9 +120,14 @@ def capture_targets(capture):
     return targets
 
 
-def all_targets(wildcards):
-    """The default target: every listed capture, as far as it allows."""
-    return [t for c in config["captures"] for t in capture_targets(c)]
+def targets_of(capture):
+    """An input function for one capture's default targets.
+
+    The default target takes one such function per capture rather than one for them all:
+    Snakemake waits for each input function's checkpoint separately, so with --keep-going a
+    capture whose check fails does not hold back the captures listed after it.
+    """
+    return lambda wildcards: capture_targets(capture)
 
 
 def certificate_inputs(wildcards):
