@@ -440,3 +440,24 @@ def test_label_errors_use_the_nearest_row_of_a_line_that_crosses_a_column_twice(
     r = label_errors(tf, lab, tu + 0.1, tv + 0.2, tf, tl, tu, tv)
     assert r["checked"] == 180
     assert r["wrong"] == 2 and r["wrong_away_from_crossing"] == 2
+
+
+def test_plane_depth_range_of_a_tilted_plane():
+    """A plane z = a + b y seen by a pinhole camera: along the ray through normalised (x, y),
+    z = a / (1 - b y), so the depth range over the sensor is set by its top and bottom rows."""
+    from crossline.report.metrics import plane_depth_range
+
+    K = np.array([[1000.0, 0, 640], [0, 1000.0, 400], [0, 0, 1]])
+    cam = Camera(K, np.zeros(5), (1280, 800))
+    a, b = 150.0, 0.4
+    n = np.array([0.0, -b, 1.0])
+    n_unit, d = n / np.linalg.norm(n), -a / np.linalg.norm(n)
+    y = (np.array([0.0, 799.0]) - 400) / 1000
+    expect = sorted(a / (1 - b * y))
+    got = plane_depth_range(cam, [(n_unit, d)], quantiles=(0.0, 1.0))
+    assert got == pytest.approx(expect, rel=1e-9)
+    # a window of rows 300-499 sees a narrower range; a plane behind the camera, none
+    y = (np.array([300.0, 499.0]) - 400) / 1000
+    got = plane_depth_range(cam, [(n_unit, d)], region=(0, 300, 1280, 200), quantiles=(0.0, 1.0))
+    assert got == pytest.approx(sorted(a / (1 - b * y)), rel=1e-9)
+    assert plane_depth_range(cam, [(np.array([0.0, 0, 1]), 150.0)]) is None

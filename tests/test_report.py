@@ -132,6 +132,21 @@ def test_figures_against_truth(report_data):
         np.linalg.norm([0.01, -0.02, 0.015]) / 4, rel=1e-6)
 
 
+
+def test_validation_volume_is_where_the_scans_measured(synthetic, report_data):
+    # no volume configured: the depths (camera z) of the scans' points, 1-99 %, recomputed
+    _, interim, _ = synthetic
+    z = np.concatenate([pd.read_parquet(interim / "points" / f"{s}.parquet")["z_cam"].to_numpy()
+                        for s in SCANS])
+    v = report_data.metrics["validation"]
+    assert v["volume_z_mm"] == pytest.approx(np.quantile(z, [0.01, 0.99]), rel=1e-3)
+    assert "scans measured" in v["volume_from"]
+    # a configured volume wins
+    m = build_report(*synthetic, config={"report": {"metrology": {"volume_z_mm": [100, 200]}}})
+    assert m.metrics["validation"]["volume_z_mm"] == [100.0, 200.0]
+    assert "configuration" in m.metrics["validation"]["volume_from"]
+
+
 def test_summary_rows_are_the_measured_figures(report_data):
     m = report_data.metrics
     rows = {(r["id"], r["scan"]): r for r in m["summary"]}

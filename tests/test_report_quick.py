@@ -80,7 +80,15 @@ def test_quick_report_pages_show_metrics(quick_pipeline):
     texts = [" ".join(page_texts(f)) for f in build_pages(m, data.plots)]
     for r in m["summary"]:
         assert fmt_row_value(r) in texts[0]
+    # why the calibrations are what they are: the distortion model and the chosen X
+    cam, he = m["calibration"]["camera"], m["calibration"]["handeye"]
+    camera_page = next(t for t in texts if "Calibration: camera intrinsics" in t)
+    assert cam["distortion_model"]["reason"] in camera_page
+    assert he["selection"]["method"] == he["method"]
+    handeye_page = next(t for t in texts if f"Chosen: {he['method']}" in t)
+    assert f"Best algebraic method {he['selection']['best_opencv']}" in handeye_page
     validation = next(t for t in texts if "A/B labels of the AB frames against the true" in t)
+    assert m["validation"]["volume_from"] in validation
     for s in m["scans"].values():
         assert f"{fmt(s['truth_labels']['checked'])} of {fmt(s['truth_labels']['points'])}" in validation
     for name, s in m["scans"].items():

@@ -31,6 +31,7 @@ import numpy as np
 from crossline import __version__
 from crossline.errors import CrosslineError
 from crossline.io.atomic import atomic_path, to_jsonable, write_json
+from crossline.io.settings import read_settings
 
 __all__ = [
     "DEFAULT_METROLOGY",
@@ -66,7 +67,9 @@ DEFAULT_METROLOGY: dict[str, Any] = {
     # gauge heights referenced to the plate in the same frame ("frame", cancels the arm's pose
     # error of each frame) or to the plate plane of the whole scan ("plane", the paper's)
     "gauge_reference": "frame",
-    "volume_z_mm": [115.0, 185.0],  # validation: the measured volume in front of the camera
+    # validation: the measured volume's depths in front of the camera; None = where the true
+    # laser planes cross the scan window (the rig's measuring range)
+    "volume_z_mm": None,
     "freeform_max_distance_mm": 1.0,  # validation: farther from the true part = not the part's
     "histogram_bins": 60,
     "seed": 0,
@@ -85,22 +88,7 @@ def load_config(config: str | Path | dict | None) -> tuple[dict, dict, dict]:
     from ``report.tolerances`` (or a top-level ``tolerances``), settings from
     ``report.metrology`` (or ``metrology``); unknown keys are kept as provenance only.
     """
-    if config is None:
-        full: dict = {}
-    elif isinstance(config, dict):
-        full = json.loads(json.dumps(config))  # a private, JSON-clean copy
-    else:
-        text = str(config)
-        path = Path(text) if len(text) < 4096 and not text.lstrip().startswith("{") else None
-        try:
-            full = json.loads(path.read_text() if path is not None else text)
-        except OSError as exc:
-            raise CrosslineError(f"{path}: cannot read the report configuration ({exc.strerror})") from exc
-        except ValueError as exc:
-            where = path if path is not None else "--config-json"
-            raise CrosslineError(f"{where}: the report configuration is not valid JSON ({exc})") from exc
-    if not isinstance(full, dict):
-        raise CrosslineError(f"the report configuration must be a JSON object, got {type(full).__name__}")
+    full = read_settings(config, "report configuration")
     rep = full.get("report", {}) if isinstance(full.get("report", {}), dict) else {}
     tol = dict(DEFAULT_TOLERANCES)
     tol.update(rep.get("tolerances", full.get("tolerances", {})) or {})
@@ -658,6 +646,10 @@ def _calibration(inputs: dict[str, dict | None]) -> dict[str, Any]:
                 c[k] = {kk: v for kk, v in cam[k].items() if isinstance(v, bool | int | float | str)}
         if isinstance(cam.get("board"), dict):
             c["board"] = dict(cam["board"])
+        dm = cam.get("distortion_model")
+        if isinstance(dm, dict):  # which coefficients were estimated, and why (not the candidates)
+            c["distortion_model"] = {k: dm[k] for k in ("selection", "free", "fixed", "reason")
+                                     if k in dm}
         unc = cam.get("uncertainty")
         if isinstance(unc, dict):  # its figures, not the covariance matrix
             c["uncertainty"] = {k: unc[k] for k in ("sigma_px", "std", "projection_rms_px") if k in unc}
@@ -708,6 +700,10 @@ def _calibration(inputs: dict[str, dict | None]) -> dict[str, Any]:
             h["pairs"] = {k: v for k, v in pairs.items()
                           if isinstance(v, int | float) and not isinstance(v, bool)}
         h["rotvec_deg"] = np.degrees(matrix_to_rotvec(X[:3, :3])).tolist()
+        sel = he.get("selection")
+        if isinstance(sel, dict):  # why this X: the rule and its figures
+            h["selection"] = {k: v for k, v in sel.items() if isinstance(v, int | float | str)
+                              and not isinstance(v, bool)}
         chosen = (he.get("methods") or {}).get(he.get("method")) or {}
         for key in ("uncertainty", "noise_model"):  # their figures, not the covariance matrix
             if isinstance(chosen.get(key), dict):
@@ -717,13 +713,53 @@ def _calibration(inputs: dict[str, dict | None]) -> dict[str, Any]:
     return cal
 
 
-def _validation(inputs: dict, truth: dict, rig: Any, met: dict) -> dict[str, Any]:
+def _validation_depths(given: Any, truth: dict, true_cam: Any,
+                       region: tuple[int, int, int, int] | None,
+                       point_depths: np.ndarray | None = None) -> tuple[tuple[float, float], str]:
+    """The validation volume's depth range and where it came from: the configuration; else
+    the depths the scans measured at (1-99 %); else where the true laser planes cross the scan
+    window (the rig's whole measuring range); else the drawn rig's window depths."""
+    from crossline.report import metrics as mt
+
+    if given is not None:
+        return (float(given[0]), float(given[1])), "configuration (report.metrology.volume_z_mm)"
+    if point_depths is not None:
+        z = point_depths[np.isfinite(point_depths) & (point_depths > 0)]
+        if len(z) >= 100:
+            lo, hi = np.quantile(z, (0.01, 0.99))
+            return (float(lo), float(hi)), "the depths the scans measured at, 1–99 %"
+    planes = [(np.asarray(p["normal"], dtype=np.float64), float(p["d"]))
+              for p in (truth.get("lasers") or {}).values() if isinstance(p, dict) and "normal" in p]
+    if true_cam is not None and planes:
+        z = mt.plane_depth_range(true_cam, planes, region=region)
+        if z is not None:
+            return z, "where the true laser planes cross the scan window"
+    depths = (truth.get("rig_draw") or {}).get("window_depths_mm")
+    if isinstance(depths, list) and len(depths) >= 2:
+        return (float(min(depths)), float(max(depths))), "the drawn rig's window depths"
+    raise CrosslineError("truth.json has neither laser planes nor rig_draw.window_depths_mm: "
+                         "set report.metrology.volume_z_mm to validate against it")
+
+
+def _point_depths(points: Path, most: int = 200_000) -> np.ndarray:
+    """Depths (z in the camera frame, mm) of a scan's points, an even subsample of ``most``."""
+    import pyarrow.parquet as pq
+
+    try:
+        z = pq.read_table(points, columns=["z_cam"]).column("z_cam").to_numpy()
+    except (KeyError, ValueError, OSError):  # an older points file without camera coordinates
+        return np.empty(0)
+    step = max(1, len(z) // most)
+    return np.asarray(z[::step], dtype=np.float64)
+
+
+def _validation(inputs: dict, truth: dict, rig: Any, met: dict,
+                point_depths: np.ndarray | None = None) -> dict[str, Any]:
     """Calibration errors against the simulator's truth, over the measured volume."""
     from crossline.camera import Camera
     from crossline.report import metrics as mt
 
-    v: dict[str, Any] = {"volume_z_mm": list(met["volume_z_mm"])}
-    z = tuple(float(x) for x in met["volume_z_mm"])
+    v: dict[str, Any] = {}
     true_cam = None
     region = None
     if rig is not None and getattr(rig, "scan_window", None) is not None:
@@ -736,6 +772,9 @@ def _validation(inputs: dict, truth: dict, rig: Any, met: dict) -> dict[str, Any
         if size is None and rig is not None:
             size = (rig.sensor.width, rig.sensor.height)
         true_cam = Camera(np.asarray(tc["K"]), np.asarray(tc.get("dist", [0] * 5)), tuple(size))
+    z, v["volume_from"] = _validation_depths(met.get("volume_z_mm"), truth, true_cam, region,
+                                             point_depths)
+    v["volume_z_mm"] = list(z)
     vol = mt.volume_points(true_cam, z_range=z, region=region) if true_cam is not None else None
     cam = inputs.get("camera")
     if cam and true_cam is not None and "K" in cam:
@@ -819,8 +858,11 @@ def build_report(
     rows: list[dict[str, Any]] = []
     scans: dict[str, Any] = {}
     form_key = FORM_KEYS[met["sphere_form_statistic"]]
+    depths: list[np.ndarray] = []
     for name in sorted(rig.scans):
         sd = _load_scan(name, rig.scans[name], capture, interim_dir, processed_dir, files)
+        if truth and sd.points_path is not None:
+            depths.append(_point_depths(sd.points_path))
         s = _measure_scan(sd, tol, met, truth, capture, files, lasers)
         scans[name] = s
         plots["scans"][name] = sd.plots
@@ -893,7 +935,8 @@ def build_report(
         overall = "PASS"
     metrics["result"] = overall
     metrics["scans"] = scans
-    metrics["validation"] = _validation(inputs, truth, rig, met) if truth else None
+    metrics["validation"] = _validation(inputs, truth, rig, met,
+                                        np.concatenate(depths) if depths else None) if truth else None
     files_out = []
     for root_label, rel, path in sorted(set(files), key=lambda f: (f[0], f[1])):
         files_out.append({"root": root_label, "file": rel, "sha256": _sha256(path),

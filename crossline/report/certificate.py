@@ -26,6 +26,7 @@ import numpy as np
 from crossline import __version__
 from crossline.errors import CrosslineError
 from crossline.io.atomic import atomic_path, to_jsonable, write_json
+from crossline.io.settings import read_settings
 from crossline.report.accuracy import (
     ReportData,
     _calibration,
@@ -57,25 +58,7 @@ CAMERA_PARAMETERS = (("fx", "px"), ("fy", "px"), ("cx", "px"), ("cy", "px"), ("k
 
 def load_limits(config: str | Path | dict | None) -> tuple[dict, dict]:
     """The configuration (dict, JSON file or text, or None) and the certificate's limits."""
-    if config is None:
-        full: dict = {}
-    elif isinstance(config, dict):
-        full = json.loads(json.dumps(config))
-    else:
-        text = str(config)
-        path = Path(text) if len(text) < 4096 and not text.lstrip().startswith("{") else None
-        try:
-            full = json.loads(path.read_text() if path is not None else text)
-        except OSError as exc:
-            raise CrosslineError(f"{path}: cannot read the certificate configuration "
-                                 f"({exc.strerror})") from exc
-        except ValueError as exc:
-            where = path if path is not None else "--config-json"
-            raise CrosslineError(f"{where}: the certificate configuration is not valid JSON "
-                                 f"({exc})") from exc
-    if not isinstance(full, dict):
-        raise CrosslineError(f"the certificate configuration must be a JSON object, got "
-                             f"{type(full).__name__}")
+    full = read_settings(config, "certificate configuration")
     limits = dict(DEFAULT_LIMITS)
     given = full.get("certificate", {})
     if not isinstance(given, dict):
@@ -290,8 +273,9 @@ def build_certificate(
     statuses = [r["status"] for r in rows]
     m["result"] = ("FAIL" if "FAIL" in statuses else
                    "INCOMPLETE" if "N/A" in statuses or "PASS" not in statuses else "PASS")
-    m["validation"] = _validation(inputs, truth, rig, {"volume_z_mm": [115.0, 185.0]}) \
-        if truth else None
+    # the same validation volume as the accuracy report's
+    given_z = ((full.get("report") or {}).get("metrology") or {}).get("volume_z_mm")
+    m["validation"] = _validation(inputs, truth, rig, {"volume_z_mm": given_z}) if truth else None
     m["provenance"] = {
         "crossline_version": __version__, "git_commit": m["software"]["git_commit"],
         "capture_date": m["capture"]["date"], "tolerances": limits, "metrology": {},

@@ -17,7 +17,6 @@ from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure
 
 from crossline.report.pages import (
-    A4,
     COLOURS,
     LEFT,
     RC,
@@ -52,19 +51,13 @@ def page_certificate(m: dict[str, Any]) -> Figure:
     """Page 1: capture, stages, result, the checks and every parameter with its 1σ."""
     p = Page(m, "Calibration certificate")
     cap, sw = m["capture"], m["software"]
-    for k, v in (("Capture", cap["name"]),
-                 ("Capture date", cap["date"] or "not recorded (no capture_date in rig.yaml)"),
-                 ("Data", "simulated (truth.json present)" if cap["simulated"] else "measured"),
-                 ("Lasers", ", ".join(cap.get("lasers") or []) or "none"),
-                 ("Software", f"crossline {sw['crossline_version']}, commit {_short(sw['git_commit'])}")):
-        p.fig.text(LEFT, p.y, k, fontsize=9, va="top", weight="bold")
-        p.fig.text(LEFT + 0.17, p.y, v, fontsize=9, va="top")
-        p.y -= 9 * 1.5 / 72 / A4[1]
+    p.fields([("Capture", cap["name"]),
+              ("Capture date", cap["date"] or "not recorded (no capture_date in rig.yaml)"),
+              ("Data", "simulated (truth.json present)" if cap["simulated"] else "measured"),
+              ("Lasers", ", ".join(cap.get("lasers") or []) or "none"),
+              ("Software", f"crossline {sw['crossline_version']}, commit {_short(sw['git_commit'])}")])
     p.gap(0.08)
-    res = m["result"]
-    p.fig.text(LEFT, p.y, "Result", fontsize=12, va="top", weight="bold")
-    p.fig.text(LEFT + 0.17, p.y, res, fontsize=12, va="top", weight="bold", color=COLOURS[res])
-    p.y -= 12 * 1.6 / 72 / A4[1]
+    p.result(m["result"])
     stages = m.get("stages") or {}
     if stages:
         p.gap(0.05)

@@ -948,6 +948,37 @@ def volume_points(
     return pts
 
 
+def plane_depth_range(
+    camera: Any,
+    planes: list[tuple[np.ndarray, float]],
+    *,
+    region: tuple[int, int, int, int] | None = None,
+    grid: tuple[int, int] = (64, 48),
+    quantiles: tuple[float, float] = (0.01, 0.99),
+) -> tuple[float, float] | None:
+    """Depth range (mm along the optical axis) over which laser planes (n, d) cross the rays of
+    ``region`` (x, y, width, height; default the full sensor): the scanner's measuring range.
+
+    The extreme 1 % at each end are left out, where a ray runs nearly along a plane. None when
+    no ray meets a plane in front of the camera.
+    """
+    w, h = camera.image_size
+    x0, y0, rw, rh = region if region is not None else (0, 0, w, h)
+    u, v = np.meshgrid(np.linspace(x0, x0 + rw - 1, grid[0]), np.linspace(y0, y0 + rh - 1, grid[1]))
+    rays = camera.rays(np.column_stack([u.ravel(), v.ravel()]))
+    z = []
+    for n, d in planes:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = -float(d) / (rays @ np.asarray(n, dtype=np.float64))
+        zi = (rays * t[:, None])[:, 2]
+        z.append(zi[np.isfinite(zi) & (t > 0) & (zi > 0)])
+    z = np.concatenate(z) if z else np.empty(0)
+    if len(z) == 0:
+        return None
+    lo, hi = np.quantile(z, quantiles)
+    return float(lo), float(hi)
+
+
 def camera_error(est: Any, true: Any, volume_cam: np.ndarray) -> dict[str, Any]:
     """Projection difference (px) of the estimated camera against the true one over the volume,
     and the parameter differences (estimated minus true)."""

@@ -152,6 +152,20 @@ class Page:
         """Move the cursor down."""
         self.y -= inches / A4[1]
 
+    def fields(self, pairs: list[tuple[str, str]], *, size: float = 9) -> None:
+        """Label / value lines at the cursor, labels in bold."""
+        for k, v in pairs:
+            self.fig.text(LEFT, self.y, k, fontsize=size, va="top", weight="bold")
+            self.fig.text(LEFT + 0.17, self.y, v, fontsize=size, va="top")
+            self.y -= size * 1.5 / 72 / A4[1]
+
+    def result(self, res: str) -> None:
+        """The document's overall result line, coloured by its verdict."""
+        self.fig.text(LEFT, self.y, "Result", fontsize=12, va="top", weight="bold")
+        self.fig.text(LEFT + 0.17, self.y, res, fontsize=12, va="top", weight="bold",
+                      color=COLOURS[res])
+        self.y -= 12 * 1.6 / 72 / A4[1]
+
     def table(self, columns: list[str], rows: list[list[str]], xs: list[float], *,
               size: float = 8.0, colours: list[list[str | None]] | None = None,
               aligns: list[str] | None = None, bold_header: bool = True, mono: bool = False) -> None:
@@ -286,15 +300,9 @@ def page_summary(m: dict[str, Any]) -> Figure:
         ("Scans", ", ".join(cap["scans"]) or "none"),
         ("Software", f"crossline {sw['crossline_version']}, commit {_short(sw['git_commit'])}"),
     ]
-    for k, v in info:
-        p.fig.text(LEFT, p.y, k, fontsize=9, va="top", weight="bold")
-        p.fig.text(LEFT + 0.17, p.y, v, fontsize=9, va="top")
-        p.y -= 9 * 1.5 / 72 / A4[1]
+    p.fields(info)
     p.gap(0.1)
-    res = m["result"]
-    p.fig.text(LEFT, p.y, "Result", fontsize=12, va="top", weight="bold")
-    p.fig.text(LEFT + 0.17, p.y, res, fontsize=12, va="top", weight="bold", color=COLOURS[res])
-    p.y -= 12 * 1.6 / 72 / A4[1]
+    p.result(m["result"])
     p.gap(0.15)
     rows = m["summary"]
     cells = [[r["figure"], r["scan"] or "", fmt_row_value(r), fmt_tolerance(r), r["status"]]
@@ -457,6 +465,9 @@ def page_camera(m: dict[str, Any], plots: dict[str, Any]) -> Figure:
                f"would put it over the sensor, {fmt(proj.get('scan_window'), 'px', 4)} over the "
                f"scan window; residual σ {fmt(unc.get('sigma_px'), 'px', 4)} per coordinate. "
                "More views, or steeper tilts, lower it.", size=8.2)
+    dm = c.get("distortion_model") or {}
+    if dm.get("reason"):
+        p.text(f"Distortion model ({dm.get('selection', '–')}): {dm['reason']}.", size=8.2)
     size = c.get("image_size")
     bc = c.get("bias_correction")
     if (c.get("board") or {}).get("pattern") == "chessboard":
@@ -683,6 +694,13 @@ def page_handeye(m: dict[str, Any]) -> Figure:
         p.text("  ".join(f"{X[r, c]:+12.6f}" for c in range(4)), size=8, family=MONO)
     p.text("rotation part as a rotation vector (deg): "
            + ", ".join(f"{v:+.5f}" for v in he["rotvec_deg"]), size=8)
+    sel = he.get("selection") or {}
+    if sel.get("rule"):
+        p.text(f"Why this X: {sel['rule']}. Best algebraic method "
+               f"{sel.get('best_opencv', '–')}: board consistency "
+               f"{fmt(sel.get('best_opencv_consistency_mm'), 'mm', 4)}; the chosen X's is "
+               f"{fmt(sel.get('vs_best_opencv_percent'), '', 2, signed=True)} % of it higher "
+               "(+) or lower (−).", size=7.8)
     p.gap(0.1)
     methods = he.get("methods") or {}
     if methods:
@@ -708,7 +726,8 @@ def page_handeye(m: dict[str, Any]) -> Figure:
         if pairs:
             p.text(f"Motion pairs: {pairs.get('used', '–')} of {pairs.get('total', '–')} used "
                    f"({pairs.get('rejected', 0)} rejected: arm and camera rotation angles differ by "
-                   f"more than {pairs.get('angle_tolerance_deg', '–')}°).", size=7.5)
+                   f"more than {fmt(pairs.get('angle_tolerance_deg'), '°', 4)}, "
+                   f"{fmt(pairs.get('mismatch_k'), '', 2)} robust σ of their mismatch).", size=7.5)
         u, nm = he.get("uncertainty") or {}, he.get("noise_model") or {}
         if u:
             p.text(f"Uncertainty of the chosen X (1σ, from its covariance): rotation "
@@ -950,9 +969,9 @@ def page_validation(m: dict[str, Any], plots: dict[str, Any]) -> list[Figure]:
     """Every estimate against the simulator's truth: calibrations, artefacts, freeform map."""
     v = m["validation"]
     p = Page(m, "Validation against truth (simulated capture)")
-    z = v.get("volume_z_mm", [115, 185])
-    p.text(f"Calibration errors over the measured volume: {z[0]:g}–{z[1]:g} mm in front of the "
-           "camera, over the scan window.", size=8.2)
+    z = v.get("volume_z_mm") or [float("nan")] * 2
+    p.text(f"Calibration errors over the measured volume: {z[0]:.1f}–{z[1]:.1f} mm in front of the "
+           f"camera ({v.get('volume_from', 'configuration')}), over the scan window.", size=8.2)
     rows = []
     c = v.get("camera")
     if c:
