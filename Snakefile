@@ -18,6 +18,7 @@ include: "workflow/rules/calibrate.smk"
 include: "workflow/rules/scan.smk"
 include: "workflow/rules/fuse.smk"
 include: "workflow/rules/report.smk"
+include: "workflow/rules/export.smk"
 
 
 # Everything each listed capture allows (its check decides): the calibration certificate of

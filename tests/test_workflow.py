@@ -120,6 +120,29 @@ def test_full_run_outputs(done_workdir: Path) -> None:
     assert planned_jobs(wd) == {}
 
 
+def test_export_formats_add_the_e57_clouds(done_workdir: Path, tmp_path: Path) -> None:
+    """export.formats [e57]: one export job per scan and nothing else; each E57 holds the
+    points of its PLY (read back with Open3D), in mm."""
+    import open3d as o3d
+
+    from crossline.io.clouds import read_e57
+
+    wd = tmp_path / "export"
+    shutil.copytree(done_workdir, wd, symlinks=True)
+    cfg = yaml.safe_load((wd / "config.yaml").read_text())
+    cfg["export"] = {"formats": ["e57"]}
+    (wd / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    scans = sorted(json.loads((wd / "data/interim/q/check.json").read_text())["scans"])
+    assert planned_jobs(wd) == {"export_cloud": len(scans)}
+    snakemake(wd)
+    for s in scans:
+        ply = np.asarray(o3d.io.read_point_cloud(str(wd / f"data/processed/q/{s}.ply")).points)
+        e57 = read_e57(wd / f"data/processed/q/{s}.e57")["points"]
+        assert len(ply) > 100
+        np.testing.assert_allclose(e57, ply, atol=1e-6)
+    assert planned_jobs(wd) == {}
+
+
 def _rerun_set(done: Path, tmp: Path, section: str, key: str, value) -> dict[str, int]:
     wd = tmp / "copy"
     shutil.copytree(done, wd, symlinks=True)

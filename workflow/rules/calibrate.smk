@@ -16,6 +16,7 @@ rule calibrate_camera:
         bias_correction=config["camera"]["bias_correction"],
         outlier_factor=config["camera"]["outlier_factor"],
         min_views=config["camera"]["min_views"],
+        distortion=config["camera"]["distortion"],
     log:
         "logs/{capture}/calibrate_camera.log",
     benchmark:
@@ -28,7 +29,8 @@ rule calibrate_camera:
     shell:
         "crossline calibrate-camera data/raw/{wildcards.capture} --out {output.camera} "
         "--bias-correction {params.bias_correction} --outlier-factor {params.outlier_factor} "
-        "--min-views {params.min_views} --views {params.views} --threads {threads} > {log} 2>&1"
+        "--min-views {params.min_views} --views {params.views} --distortion {params.distortion} "
+        "--threads {threads} > {log} 2>&1"
 
 
 rule calibrate_lasers:

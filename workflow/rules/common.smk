@@ -102,7 +102,8 @@ def capture_targets(capture):
     """What the default target builds of a capture: what its stages allow.
 
     Every capture gets its check; one whose camera calibrates gets the calibration
-    certificate; one whose scans can be measured also gets the accuracy report. Stages the
+    certificate; one whose scans can be measured also gets the accuracy report and its
+    clouds in the export formats asked for. Stages the
     capture does not allow are said once, with the reason.
     """
     summary = check_summary(capture)
@@ -117,7 +118,14 @@ def capture_targets(capture):
         targets.append(f"reports/{capture}/calibration.pdf")
     if why["scans"] is None:
         targets.append(f"reports/{capture}/accuracy.pdf")
+        targets += [f"data/processed/{capture}/{scan}.{fmt}" for fmt in export_formats()
+                    for scan in sorted(summary["scans"])]
     return targets
+
+
+def export_formats():
+    """The cloud formats asked for besides PLY (config export.formats)."""
+    return list((config.get("export") or {}).get("formats") or [])
 
 
 def targets_of(capture):
