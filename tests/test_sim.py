@@ -149,6 +149,24 @@ def test_truth_follows_the_contract(quick_capture):
     assert len(sc["plate"]["plane_base"]) == 4
     assert sc["ball"]["diameter"] == 25.0 and len(sc["ball"]["center_base"]) == 3
     assert sc["part"]["mesh"] == "truth/part.ply" and (quick_capture / "truth" / "part.ply").is_file()
+    # the freeform's drawing: rig.yaml names part.stl, the design surface in the part's own
+    # frame; carried into the base frame by T_base_nominal it lies on the truth mesh
+    import open3d as o3d
+
+    cap_rig = yaml.safe_load((quick_capture / "rig.yaml").read_text())
+    assert cap_rig["scans"]["part"]["nominal"] == "part.stl"
+    nominal = o3d.io.read_triangle_mesh(str(quick_capture / "part.stl"))
+    Vn = np.asarray(nominal.vertices)
+    assert len(nominal.triangles) > 10000 and abs(Vn[:, 2].min()) < 1e-6  # z = 0 on the table
+    T = np.array(sc["part"]["T_base_nominal"])
+    truth_mesh = o3d.io.read_triangle_mesh(str(quick_capture / "truth" / "part.ply"))
+    c = np.asarray(truth_mesh.vertices).mean(axis=0)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor((np.asarray(truth_mesh.vertices) - c).astype(np.float32)),
+                        o3d.core.Tensor(np.asarray(truth_mesh.triangles).astype(np.uint32)))
+    Vb = Vn @ T[:3, :3].T + T[:3, 3] - c
+    d = scene.compute_distance(o3d.core.Tensor(Vb.astype(np.float32))).numpy()
+    assert d.max() < 2e-3, d.max()
     cap = open_capture(quick_capture)
     for name, scan in cap.scans.items():
         cl = pd.read_parquet(quick_capture / sc[name]["centrelines"])

@@ -67,11 +67,17 @@ from crossline.io.images import write_image, write_png
 from crossline.sim import arm as arm_mod
 from crossline.sim import views as views_mod
 from crossline.sim.colour import CHANNELS, ColourSensor, laser_wavelength
-from crossline.sim.part import part_mesh, write_ply
+from crossline.sim.part import part_mesh, write_ply, write_stl
 from crossline.sim.presets import PRESETS, RigPreset
 from crossline.sim.random_rig import RANDOM_PRESETS, random_rig
 from crossline.sim.render import Light, RigModel, render_image
-from crossline.sim.scenes import board_scene_free, board_scene_table, freeform_part, scan_scene
+from crossline.sim.scenes import (
+    board_scene_free,
+    board_scene_table,
+    freeform_part,
+    nominal_frame,
+    scan_scene,
+)
 
 __all__ = ["IMAGE_FORMATS", "PARTS", "simulate"]
 
@@ -79,6 +85,7 @@ LASER_STATES = ("A", "B", "AB", "off")
 PARTS = ("camera", "lasers", "handeye", "scans")  # what a capture may hold
 IMAGE_FORMATS = {"png": ".png", "jpeg": ".jpg", "tiff": ".tif", "bmp": ".bmp"}
 EIGHT_BIT_ONLY = ("jpeg", "bmp")
+NOMINAL_TOL_MM = 1e-3  # chordal tolerance of a freeform's nominal STL, as a CAD export sets it
 ALWAYS_ON_AMBIENT = 0.5  # laser-on poses without a twin: room light at this share of the board views'
 KIND_CAMERA, KIND_LASER, KIND_HANDEYE, KIND_SCAN = 1, 2, 3, 4
 GRAD_MM = 0.0015  # relative change of ambient light per mm across the scene
@@ -613,6 +620,13 @@ def _render_all(rig: RigPreset, root: Path, seed: int, quick: bool, frames: int 
             V, F = part_mesh(freeform_part(rig, spec))
             write_ply(truth_dir / "part.ply", V, F)
             scan_truth[name]["mesh_triangles"] = len(F)
+            # its drawing: the design surface in the part's own frame, exported as a CAD
+            # system would (an STL within NOMINAL_TOL_MM of the surface)
+            T = nominal_frame(rig, spec)
+            Vn, Fn = part_mesh(freeform_part(rig, spec), NOMINAL_TOL_MM)
+            write_stl(root / f"{name}.stl", (Vn - T[:3, 3]) @ T[:3, :3], Fn,
+                      f"crossline virtual rig: nominal of scan {name}, mm")
+            scan_truth[name]["T_base_nominal"] = T.tolist()
 
     truth = _truth_json(rig, seed, quick, bits, pattern, truth_cal, scan_truth, output)
     defaults = {"parts": list(PARTS), "image_format": "png", "colour": None,
@@ -697,6 +711,8 @@ def _write_rig_yaml(path: Path, rig: RigPreset, bits: int, scan_names: list[str]
         if spec.name not in scan_names:
             continue
         entry: dict[str, Any] = {"artefact": spec.artefact}
+        if spec.artefact == "freeform":
+            entry["nominal"] = f"{spec.name}.stl"
         if spec.artefact == "gauge_block":
             entry["height"] = float(spec.params["height"])
         if spec.artefact == "sphere":

@@ -108,3 +108,18 @@ def write_ply(path: str | Path, V: np.ndarray, F: np.ndarray) -> None:
             fh.write(header)
             fh.write(np.ascontiguousarray(V, dtype="<f8").tobytes())
             fh.write(fv.tobytes())
+
+
+def write_stl(path: str | Path, V: np.ndarray, F: np.ndarray, title: str = "crossline nominal") -> None:
+    """Binary STL (float32, as the format has it; mm), atomically and byte-reproducibly."""
+    tri = np.asarray(V, dtype=np.float64)[np.asarray(F)]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    rec = np.zeros(len(F), dtype=[("n", "<f4", (3,)), ("v", "<f4", (3, 3)), ("a", "<u2")])
+    rec["n"] = n
+    rec["v"] = tri
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(title.encode("ascii")[:80].ljust(80, b" "))
+            fh.write(np.uint32(len(F)).astype("<u4").tobytes())
+            fh.write(rec.tobytes())

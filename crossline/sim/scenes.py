@@ -118,6 +118,16 @@ def scan_scene(preset: RigPreset, spec: ScanSpec) -> tuple[Scene, dict, np.ndarr
     return Scene(prims), truth, aim
 
 
+def nominal_frame(preset: RigPreset, spec: ScanSpec) -> np.ndarray:
+    """T_base_part of a freeform: its drawing's frame, origin at the middle of its footprint
+    on the table, z up, x along the part's long semi-axis (the frame its nominal mesh is in)."""
+    p = spec.params
+    T = np.eye(4)
+    T[:3, :3] = _rot(0, 0, p.get("yaw_deg", 0.0))
+    T[:3, 3] = [p["centre"][0], p["centre"][1], preset.table_z_mm]
+    return T
+
+
 def freeform_part(preset: RigPreset, spec: ScanSpec) -> FreeformPart:
     """The freeform part of a scan spec (base frame)."""
     p = spec.params
