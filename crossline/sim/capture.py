@@ -220,9 +220,12 @@ def _run(plan: Plan, job: tuple) -> tuple[str, Any, int]:
                                     _rng(plan.seed, KIND_LASER, li, i, 0), ambient="full",
                                     truth=False, colour=colour)
             _write(plan, rel_board, dn)
+            # the room light of the laser-on image traced like the board view's ("full"), not
+            # interpolated from a coarse grid as in scan frames: calibration subtracts the two
+            # images, and a smeared board there would leave the board's edges in the difference
             light = _light_board(T, preset.ambient_scan_e, _board_centre(preset))
             dn, _, _ = render_image(model, scene, light, full, (laser,),
-                                    _rng(plan.seed, KIND_LASER, li, i, 1), ambient="coarse",
+                                    _rng(plan.seed, KIND_LASER, li, i, 1), ambient="full",
                                     truth=False, colour=colour)
         else:  # laser always on: one image in which the board must be found despite the stripe
             light = _light_board(T, ALWAYS_ON_AMBIENT * preset.ambient_board_e, _board_centre(preset))
