@@ -9,9 +9,14 @@ For each pose of each laser:
    threshold as a fraction of the stripe's peak level on the board's plate (its light area,
    or its dark one for light circles; within the board's outline, ``margin_px`` clear of the
    circles), whatever the stripe does on the table or on the circles;
-3. only centres whose whole window lies on the board, away from every albedo edge (circle
-   rims, chessboard square edges) by ``margin_px``, are kept: at an albedo edge the stripe's
-   profile is cut or weighted unevenly, which shifts its centre;
+3. the board's albedo is taken out of the difference (:func:`albedo_gain`): the stripe is laser
+   irradiance times albedo, so across a circle rim or a square edge its profile steps by the
+   albedo ratio (~10x), which would pull its centre towards the light side. The gain comes
+   from the lasers-off image, less the sensor's black level, which the stripe's own levels on
+   the two albedo classes give. With the gain, a centre must lie ``margin_px`` clear of the
+   albedo edges (the blur of the edge is not quite undone there) and its whole window on the
+   board; without it (a class too rare to measure the ratio on), its whole window must clear
+   every albedo edge by ``margin_px``;
 4. each centre's ray (undistorted) is intersected with the board plane.
 
 One plane per laser is then fitted to the points of all its poses: a least-median start
@@ -40,6 +45,7 @@ from crossline.laser import LASERS, LaserPlane, LaserPlanes
 
 __all__ = [
     "PoseStripe",
+    "albedo_gain",
     "board_plane_points",
     "edge_clearance",
     "robust_plane",
@@ -66,6 +72,8 @@ class PoseStripe:
     board_rms_px: float
     axis: str  # "column" or "row": the direction of the profiles
     n_centres: int  # centres found before the board-area filter
+    albedo: dict | None = None  # the albedo gain's ratio and black level, None if not applied
+    on_other: np.ndarray | None = None  # (M,) bool: the centre lies on the other albedo class
 
 
 def board_plane_points(camera: Camera, T_cam_board: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -76,18 +84,23 @@ def board_plane_points(camera: Camera, T_cam_board: np.ndarray, uv: np.ndarray) 
     return r * lam[:, None]
 
 
-def edge_clearance(board: Board, xy: np.ndarray, board_margin: float | None = None) -> np.ndarray:
+def edge_clearance(board: Board, xy: np.ndarray, board_margin: float | None = None,
+                   pattern: bool = True) -> np.ndarray:
     """Distance (mm) from board points (N, 2) to the nearest albedo edge; < 0 off the board.
 
-    Albedo edges are circle rims (circle grids) or square edges (chessboards). The board's
-    usable area is the grid's bounding box grown by ``board_margin`` (default: one circle
-    diameter beyond the outer centres; the chessboard's outer squares).
+    Albedo edges are circle rims (circle grids) or square edges (chessboards); with
+    ``pattern`` False only the edge of the board's usable area counts. That area is the grid's
+    bounding box grown by ``board_margin`` (default: one circle diameter beyond the outer
+    centres; the chessboard's outer squares).
     """
     xy = np.asarray(xy, dtype=np.float64)
     x, y = xy[..., 0], xy[..., 1]
     s = board.spacing
     ex, ey = board.extent()
     m = _margin(board) if board_margin is None else board_margin
+    inside = np.minimum.reduce([x + m, y + m, ex + m - x, ey + m - y])
+    if not pattern:
+        return inside
     if board.pattern == "chessboard":
         kx = np.clip(np.round(x / s), -1, board.cols)
         ky = np.clip(np.round(y / s), -1, board.rows)
@@ -109,7 +122,6 @@ def edge_clearance(board: Board, xy: np.ndarray, board_margin: float | None = No
                 cx = [np.clip(c0 + dc, 0, board.cols - 1) * s for dc in (-1, 0, 1)]
             for cxx in cx:
                 clear = np.minimum(clear, np.abs(np.hypot(x - cxx, y - r * s) - R))
-    inside = np.minimum.reduce([x + m, y + m, ex + m - x, ey + m - y])
     return np.where(inside < 0, inside, np.minimum(clear, inside))
 
 
@@ -223,6 +235,7 @@ def stripe_points(
     bias_correction: bool = True,
     name: str = "laser image",
     detect_image: np.ndarray | None = None,
+    normalise_albedo: bool = True,
 ) -> PoseStripe:
     """Stripe points on the board plane (camera frame) of one pose; see the module docstring.
 
@@ -230,7 +243,8 @@ def stripe_points(
     ``board_image`` None: the laser was always on; the board is found in the laser image with
     its stripe removed (:func:`remove_stripe`), which stands in for the lasers-off image.
     ``detect_image`` (default: the lasers-off image) is the image the board is found in, e.g.
-    a colour channel that shows the board better than the laser's. Raises
+    a colour channel that shows the board better than the laser's. ``normalise_albedo`` False
+    keeps the board's albedo in the stripe (the whole window must then clear every edge). Raises
     :class:`CalibrationError` naming ``name`` when the board or the stripe on it is not found.
     """
     from crossline.scan.stripes import full_scale, grey_centre
@@ -257,7 +271,7 @@ def stripe_points(
     scale = float(min(16.0, 65535.0 / max(float(diff_f.max()), 1.0)))
     diff = np.clip(np.round(diff_f * scale), 0, 65535).astype(np.uint16)
 
-    def clearance_px(uv: np.ndarray) -> np.ndarray:
+    def clearance_px(uv: np.ndarray, pattern: bool = True) -> np.ndarray:
         r = camera.rays(uv)
         cosi = np.abs(r @ n)
         lam = (n @ T[:3, 3]) / (r @ n)
@@ -265,7 +279,7 @@ def stripe_points(
         xy = p @ T[:3, :3] - T[:3, :3].T @ T[:3, 3]  # board frame (x, y, ~0)
         # mm per pixel on the board: depth / f, stretched by the obliquity
         mm_px = np.abs(lam) / camera.fx / np.maximum(cosi, 0.2)
-        return edge_clearance(board, xy[:, :2]) / mm_px
+        return edge_clearance(board, xy[:, :2], pattern=pattern) / mm_px
 
     # the difference's own noise sets the floor: the stripe stands NOISE_K sigmas above it
     noise = scale * _robust_noise(diff_f[::7, ::7])
@@ -298,12 +312,23 @@ def stripe_points(
         )
     thr = max(threshold * peak, floor * 0.5)
     axis = _stripe_axis(dm, thr, lambda uv: clearance_px(uv) > 0)
+    albedo = None
+    if normalise_albedo:
+        area = _board_area(camera, T, board, diff.shape)
+        other = light if board.circles == "light" else ~light  # the class the plate is not
+        found = albedo_gain(diff_f, a * board_image.astype(np.float32) + b, plate, other, area,
+                            axis, floor / scale, clearance_px)
+        if found is not None:
+            gain, albedo = found
+            # the stripe everywhere at its level on the plate: the same threshold holds
+            diff = np.clip(np.round(diff_f * gain * scale), 0, 65535).astype(np.uint16)
+            dm = np.where(area, diff, 0)
     img = dm if axis == "column" else np.ascontiguousarray(dm.T)
     c = grey_centre(img, min_width=2.0, max_width=80.0, pad=PAD_PX, level=thr, data_max=65535.0)
     ok = (c["flags"] & ~np.uint8(4)) == 0  # saturation of the difference is harmless
     col, v, width = c["u"][ok], c["v"][ok], c["width"][ok]
     n_centres = int(ok.sum())
-    # every pixel of each window (run ± pad ± background pixels) must clear the albedo edges
+    # each centre's window: its run ± pad ± background pixels
     half = 0.5 * width + PAD_PX + 3
     reach = int(np.ceil(half.max())) if len(half) else 0
     steps = np.arange(-reach, reach + 1)
@@ -311,11 +336,15 @@ def stripe_points(
     inwin = np.abs(steps[None, :]) <= half[:, None]
     cols = np.broadcast_to(col[:, None], rows.shape)
     uv = np.stack([cols, rows], -1) if axis == "column" else np.stack([rows, cols], -1)
+    centres = np.column_stack([col, v]) if axis == "column" else np.column_stack([v, col])
+    # the whole window clear of every albedo edge, or, with the albedo taken out, the centre
+    # clear of the pattern's edges and the window on the board
     clear = np.full(rows.shape, np.inf)
     if inwin.any():
-        clear[inwin] = clearance_px(uv[inwin])
+        clear[inwin] = clearance_px(uv[inwin], pattern=albedo is None)
     good = np.all(clear >= margin_px, axis=1)
-    centres = np.column_stack([col, v]) if axis == "column" else np.column_stack([v, col])
+    if albedo is not None and len(centres):
+        good &= clearance_px(centres.astype(np.float64)) >= margin_px
     centres = centres[good]
     if len(centres) < MIN_CENTRES:
         raise CalibrationError(
@@ -323,7 +352,74 @@ def stripe_points(
             f"circles and the board's edge (of {n_centres} found), at least {MIN_CENTRES} needed"
         )
     pts = board_plane_points(camera, T, centres)
-    return PoseStripe(pts, centres, T, pose.rms_px, axis, n_centres)
+    iu = np.clip(np.round(centres[:, 0]).astype(int), 0, light.shape[1] - 1)
+    iv = np.clip(np.round(centres[:, 1]).astype(int), 0, light.shape[0] - 1)
+    on_other = (light if board.circles == "light" else ~light)[iv, iu]
+    return PoseStripe(pts, centres, T, pose.rms_px, axis, n_centres, albedo, on_other)
+
+
+def albedo_gain(
+    diff: np.ndarray,
+    ambient: np.ndarray,
+    plate: np.ndarray,
+    other: np.ndarray,
+    area: np.ndarray,
+    axis: str,
+    floor: float,
+    clearance_px: Any,
+    degree: int = 3,
+    min_samples: int = 8,
+) -> tuple[np.ndarray, dict] | None:
+    """Per-pixel gain that takes the board's albedo out of laser minus ambient, and its figures.
+
+    The stripe is laser irradiance times albedo; the ambient image (lasers-off, scaled to the
+    laser image's exposure) is room light times albedo plus the sensor's black level ``c``,
+    which is not known. The stripe's own peak in each profile (log), fitted as a smooth
+    function along the stripe (Legendre, ``degree``) plus a step on the ``other`` class, gives
+    the classes' albedo ratio ``r``; with the classes' ambient levels ``S_p`` (``plate``) and
+    ``S_o``, ``r = (S_o - c) / (S_p - c)`` gives ``c``. The gain ``(S_p - c) / (ambient - c)``
+    brings the stripe everywhere to its level on the plate, through the blur of the edges too
+    (to first order). None when either class has fewer than ``min_samples`` profiles whose
+    peak is 2 px clear of the edges, or the classes differ too little to need it.
+    """
+    d = diff if axis == "column" else diff.T
+    am = area if axis == "column" else area.T
+    masked = np.where(am, d, -np.inf)
+    rows = np.argmax(masked, axis=0)
+    cols = np.arange(d.shape[1])
+    peak = masked[rows, cols]
+    ok = np.isfinite(peak) & (peak > floor)
+    if ok.sum() < 2 * min_samples:
+        return None
+    cols, rows, peak = cols[ok], rows[ok], peak[ok]
+    uv = np.column_stack([cols, rows]) if axis == "column" else np.column_stack([rows, cols])
+    iu, iv = uv[:, 0], uv[:, 1]
+    on_other, on_plate = other[iv, iu], plate[iv, iu]
+    keep = (on_other | on_plate) & (clearance_px(uv.astype(np.float64)) >= 2.0)
+    if (keep & on_other).sum() < min_samples or (keep & on_plate).sum() < min_samples:
+        return None
+    s = cols[keep].astype(np.float64)
+    s = 2.0 * (s - s.min()) / max(float(np.ptp(s)), 1.0) - 1.0
+    A = np.column_stack([np.polynomial.legendre.legvander(s, degree), on_other[keep]])
+    y = np.log(peak[keep])
+    inl = np.ones(len(y), bool)
+    for _ in range(4):  # speckle and glints: profiles far off the fit say nothing of the albedo
+        coef = np.linalg.lstsq(A[inl], y[inl], rcond=None)[0]
+        res = y - A @ coef
+        sig = 1.4826 * float(np.median(np.abs(res[inl] - np.median(res[inl])))) or 1e-6
+        inl = np.abs(res) <= 3.0 * sig
+    r = float(np.exp(coef[-1]))
+    s_p = float(np.median(ambient[plate & area]))
+    s_o = float(np.median(ambient[other & area]))
+    if (r < 1.0) != (s_o < s_p) or abs(1.0 - r) < 0.05:
+        return None
+    c = (s_o - r * s_p) / (1.0 - r)
+    lowest = min(s_o, s_p)
+    if not c < lowest:  # the stripe and the ambient disagree: no gain rather than a wrong one
+        return None
+    shade = np.maximum(ambient - c, 0.25 * (lowest - c))
+    return ((s_p - c) / shade).astype(np.float32), {"ratio": r, "black_level": c,
+                                                    "profiles": int(inl.sum())}
 
 
 def ambient_model(board_image: np.ndarray, laser_image: np.ndarray, step: int = 3) -> tuple[float, float]:
@@ -360,8 +456,14 @@ def robust_plane(
     samples: int = 300,
     seed: int = 0,
     groups: np.ndarray | None = None,
+    noise_groups: np.ndarray | None = None,
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """Plane ``(n, d)`` through points (N, 3) and the inlier mask: LMedS start, trimmed LSQ.
+
+    ``noise_groups`` (N,) labels points that share a noise level (e.g. pose and albedo class:
+    where the noise is additive, the stripe on the dark class is the noisier; where speckle
+    rules, it is not). Each group's robust sigma, measured on the residuals, trims it and
+    weights it (1 / sigma^2) in the least squares; by default one sigma for all.
 
     ``groups`` (N,) names the board pose of each point. One pose's stripe is a line, and
     the plane of its board holds it exactly: with poses of unequal size a plain median would
@@ -387,14 +489,21 @@ def robust_plane(
     med = per_pose.max(axis=0) if ng == 2 else np.median(per_pose, axis=0)
     best = int(np.argmin(med))
     n, d = nn[best], dd[best]
+    ng_ = np.zeros(len(p), dtype=np.int64) if noise_groups is None else \
+        np.unique(noise_groups, return_inverse=True)[1]
     inl = np.ones(len(p), dtype=bool)
     for _ in range(50):
         r = plane_distance(p, n, d)
-        sigma = 1.4826 * np.median(np.abs(r[inl] - np.median(r[inl])))
-        new = np.abs(r) <= max(trim * sigma, 1e-12)
+        sigma = np.empty(len(p))
+        for k in np.unique(ng_):
+            mk = ng_ == k
+            rk = r[mk & inl] if (mk & inl).sum() >= 5 else r[mk]
+            sigma[mk] = 1.4826 * np.median(np.abs(rk - np.median(rk)))
+        sigma = np.maximum(sigma, 1e-12)
+        new = np.abs(r) <= trim * sigma
         if new.sum() < 3:
             break
-        n, d = fit_plane(p[new])
+        n, d = fit_plane(p[new], 1.0 / sigma[new] ** 2)
         if np.array_equal(new, inl):
             break
         inl = new
@@ -494,7 +603,9 @@ def run_calibrate_lasers(
             continue
         pts = np.concatenate([s.points for _, s in mine])
         pose_of = np.concatenate([np.full(len(s.points), i) for i, (_, s) in enumerate(mine)])
-        nrm, d, inl = robust_plane(pts, trim=trim, groups=pose_of)
+        other = np.concatenate([s.on_other for _, s in mine])
+        nrm, d, inl = robust_plane(pts, trim=trim, groups=pose_of,
+                                   noise_groups=2 * pose_of + other)
         k = 0
         poses = []
         for v, s in mine:
@@ -507,6 +618,7 @@ def run_calibrate_lasers(
                 "laser_image": str(v.laser_image.relative_to(cap.root)),
                 "profiles": s.axis,
                 "n_centres": s.n_centres,
+                "albedo": s.albedo,
                 "n_points": m,
                 "n_used": int(sl.sum()),
                 "rms_mm": float(np.sqrt(np.mean(r**2))) if len(r) else None,
