@@ -328,3 +328,41 @@ def test_read_mesh_is_exact(tmp_path):
     o3d.io.write_triangle_mesh(str(tmp_path / "o3d.ply"), m)
     V3, F3 = read_mesh(tmp_path / "o3d.ply")
     assert np.allclose(V3, V, rtol=0, atol=1e-4) and np.array_equal(F3, F)
+
+
+def test_nominal_comparison_and_its_page(tmp_path, report_data):
+    """A freeform cloud against its nominal STL through the report's own path: aligned, the
+    support plane left out, the share within the band counted again here, and the page."""
+    from crossline.report.accuracy import DEFAULT_METROLOGY, DEFAULT_TOLERANCES, _nominal_comparison
+    from crossline.report.nominal import load_nominal, signed_deviation
+    from crossline.report.pages import page_nominal
+    from crossline.sim.part import write_stl
+    from tests.test_nominal import _part_mesh, _sample
+
+    V, F = _part_mesh()
+    keep = V[:, 2] >= 0  # an open drawing: the part cut at z = 0, where it stands
+    F = F[keep[F].all(axis=1)]
+    write_stl(tmp_path / "part.stl", V, F)
+    rng = np.random.default_rng(5)
+    p, _ = _sample(V, F, 20000, rng)
+    p = p + rng.normal(0.0, 0.004, p.shape)
+    table = np.column_stack([rng.uniform(-50, 50, 3000), rng.uniform(-40, 40, 3000),
+                             rng.normal(0.0, 0.004, 3000)])
+    T = np.eye(4)
+    T[:3, :3] = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    T[:3, 3] = [400.0, 80.0, -30.0]
+    cloud = np.vstack([p, table]) @ T[:3, :3].T + T[:3, 3]
+    nc, plots = _nominal_comparison(cloud, tmp_path / "part.stl", DEFAULT_TOLERANCES,
+                                    DEFAULT_METROLOGY)
+    A = np.asarray(nc["T_nominal_cloud"]) @ T
+    assert np.allclose(A[:3, :3], np.eye(3), atol=1e-5) and np.allclose(A[:3, 3], 0, atol=2e-3)
+    assert nc["n_support"] >= 0.9 * len(table) and nc["n"] <= len(p)
+    Vn, Fn = load_nominal(tmp_path / "part.stl")
+    d = signed_deviation(p, Vn, Fn)
+    above = p[:, 2] > nc["support_margin_mm"]
+    assert nc["share_within_tolerance"] == pytest.approx(np.mean(np.abs(d[above]) <= 0.05), abs=2e-3)
+    m = json.loads(json.dumps(report_data.metrics))
+    m["scans"]["part"]["nominal_comparison"] = nc
+    text = " ".join(page_texts(page_nominal(m, "part", {"nominal": plots})))
+    assert f"{fmt(nc['share_within_tolerance'], '%')} of {fmt(nc['n'])} points" in text
+    assert "RANSAC on FPFH features" in text

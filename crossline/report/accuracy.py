@@ -56,6 +56,8 @@ DEFAULT_TOLERANCES: dict[str, float] = {
     "sphere_size_error_mm": 0.01,  # |fitted − nominal diameter|
     "sphere_form_error_mm": 0.03,  # range of radial residuals (statistic: see below)
     "ab_height_difference_mm": 0.005,  # |gauge height from A points − from B points|
+    "nominal_within_share": 0.95,  # freeform with a nominal: share within ±nominal_band_mm of it
+    "nominal_band_mm": 0.05,  # the tolerance band around the nominal surface
 }
 
 DEFAULT_METROLOGY: dict[str, Any] = {
@@ -153,6 +155,7 @@ class ScanData:
     fuse_stats: dict | None = None
     points_path: Path | None = None
     points_info: dict | None = None
+    mesh: str | None = None  # a freeform's nominal mesh, relative to the capture
     plots: dict[str, Any] = field(default_factory=dict)
 
 
@@ -214,7 +217,9 @@ def _load_scan(
 
     from crossline.fuse import read_ply
 
-    sd = ScanData(name, spec.artefact, dict(spec.nominal))
+    sd = ScanData(name, spec.artefact, dict(spec.nominal), mesh=getattr(spec, "mesh", None))
+    if sd.mesh and (root / sd.mesh).is_file():
+        files.append(("capture", sd.mesh, root / sd.mesh))
     fcsv = root / "scans" / name / "frames.csv"
     if fcsv.is_file():
         files.append(("capture", f"scans/{name}/frames.csv", fcsv))
@@ -302,6 +307,57 @@ def _basis(up: np.ndarray) -> np.ndarray:
     from crossline.report.metrics import plane_basis
 
     return plane_basis(up)
+
+
+def _nominal_comparison(P: np.ndarray, mesh: Path, tol: dict, met: dict) -> tuple[dict, dict]:
+    """A freeform cloud (base frame) against its nominal mesh: alignment, signed deviations
+    within the tolerance band, the out-of-tolerance regions; and the arrays of its page."""
+    from crossline.report import nominal as nm
+
+    V, F = nm.load_nominal(mesh)
+    al = nm.align_to_nominal(P, V, F, seed=int(met["seed"]))
+    if al["ambiguous"]:
+        raise CrosslineError(
+            f"{mesh.name}: the alignment is ambiguous: {al['rival_poses']} other pose(s) fit the "
+            "scanned surface as well but place it elsewhere on the part (a symmetric part, or "
+            "too little of it scanned): scan more of the part")
+    T = np.asarray(al["T_nominal_cloud"], dtype=np.float64)
+    Q = P @ T[:3, :3].T + T[:3, 3]
+    dev = nm.signed_deviation(Q, V, F)
+    keep = np.isfinite(dev)
+    support = nm.support_plane(V, F)
+    n_support = 0
+    if support is not None:
+        # the surface the part stands on, which its drawing leaves open: points within a few
+        # noise sigmas of that plane (the table, the part's very foot) are not compared
+        margin = max(0.1, 5.0 * float(al["inlier_rmse_mm"]))
+        on_support = (Q @ support[0] + support[1]) < margin
+        n_support = int((on_support & keep).sum())
+        keep &= ~on_support
+    band = float(tol["nominal_band_mm"])
+    summ = nm.deviation_summary(dev[keep], tolerance_mm=band, points=Q[keep],
+                                max_distance_mm=float(met["freeform_max_distance_mm"]))
+    out = {
+        "nominal": mesh.name, "triangles": len(F),
+        "alignment": {k: v for k, v in al.items() if k != "T_nominal_cloud"},
+        "T_nominal_cloud": T.tolist(),
+        "n_support": n_support, "support_margin_mm": margin if support is not None else None,
+        **summ,
+    }
+    shown = keep & (np.abs(dev) <= float(met["freeform_max_distance_mm"]))
+    return out, {"points": Q[shown], "dev": dev[shown], "regions": summ.get("regions") or [],
+                 "band": band}
+
+
+def _alignment_error(T_nominal_cloud: np.ndarray, T_base_nominal: np.ndarray,
+                     P: np.ndarray) -> dict[str, float]:
+    """The alignment against the true placement: rotation, translation, and how far the
+    cloud's points land from where the true transform puts them (RMS, max)."""
+    from crossline.report import metrics as mt
+
+    true = np.linalg.inv(T_base_nominal)
+    e = mt.transform_error(T_nominal_cloud, true, P)
+    return {k: v for k, v in e.items() if isinstance(v, int | float)}
 
 
 def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: Path,
@@ -411,6 +467,17 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
                 out["truth"] = t
         elif sd.artefact == "freeform":
             out["measurement"] = {"n": len(P)}
+            if sd.mesh:
+                try:
+                    out["nominal_comparison"], sd.plots["nominal"] = _nominal_comparison(
+                        P, root / sd.mesh, tol, met)
+                except (CrosslineError, ValueError) as exc:
+                    out["nominal_error"] = str(exc)
+                    log.warning("scan %s: no comparison with its nominal: %s", sd.name, exc)
+                nc = out.get("nominal_comparison")
+                if nc and tscan and "T_base_nominal" in tscan:
+                    out.setdefault("truth", {})["nominal_alignment"] = _alignment_error(
+                        np.asarray(nc["T_nominal_cloud"]), np.asarray(tscan["T_base_nominal"]), P)
             if tscan and "mesh" in tscan:
                 dev = _mesh_deviation(P, root / str(tscan["mesh"]), files, towards=up)
                 if dev is not None:
@@ -427,7 +494,7 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
                     stats.update(n_total=len(P), n_table=n_table,
                                  n_off_part=int(len(P) - on.sum() - n_table),
                                  max_distance_mm=float(met["freeform_max_distance_mm"]))
-                    out["truth"] = {"deviation_to_true_mesh": stats}
+                    out.setdefault("truth", {})["deviation_to_true_mesh"] = stats
                     sd.plots["deviation"] = dev[on]
                     sd.plots["deviation_mask"] = on
                     sd.plots["hist"] = {"values": dev[on], "xlabel": "signed distance to the true "
@@ -921,6 +988,13 @@ def build_report(
                        f"sphere: size error, incidence ≤ {inc['max_incidence_deg']:.0f}°", name,
                        inc["size_error_steep_mm"], "mm", None, use_abs=True)
         elif sd.artefact == "freeform":
+            nc = s.get("nominal_comparison")
+            if nc or s.get("nominal_error"):
+                _check(rows, "nominal_within_share",
+                       f"freeform: share within ±{tol['nominal_band_mm']:g} mm of its nominal",
+                       name, (nc or {}).get("share_within_tolerance"), "%",
+                       tol["nominal_within_share"], comparison=">=",
+                       note=s.get("nominal_error", ""))
             dev = (s.get("truth") or {}).get("deviation_to_true_mesh")
             if dev:
                 _check(rows, "freeform_rms_mm", "freeform: RMS deviation from true surface",

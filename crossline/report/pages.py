@@ -958,10 +958,65 @@ def page_scan(m: dict[str, Any], name: str, plots: dict[str, Any]) -> Figure:
                    color=COLOURS["N/A"])
         elif s.get("a_vs_b_note"):
             p.text(f"Laser A against laser B: {s['a_vs_b_note']}", size=8, color=COLOURS["INFO"])
-    elif art == "freeform":
-        p.gap(0.2)
-        p.text("A freeform part has no nominal geometry here; with truth.json, its deviation "
-               "from the true surface is on the validation page.", size=8)
+    if art == "freeform":
+        p.gap(0.1)
+        nc = s.get("nominal_comparison")
+        if nc:
+            p.text(f"Against its nominal {nc['nominal']}: the next page.", size=8)
+        elif s.get("nominal_error"):
+            p.text(f"No comparison with its nominal: {s['nominal_error']}", size=8,
+                   color=COLOURS["N/A"])
+        else:
+            p.text("A freeform part without a nominal mesh (rig.yaml nominal:) is not compared "
+                   "with a drawing; with truth.json, its deviation from the true surface is on "
+                   "the validation page.", size=8)
+    return p.fig
+
+
+def page_nominal(m: dict[str, Any], name: str, plots: dict[str, Any]) -> Figure:
+    """A freeform scan against its nominal mesh: alignment, deviation map, histogram, regions."""
+    from crossline.report.nominal import deviation_map_figure
+
+    s = m["scans"][name]
+    nc = s["nominal_comparison"]
+    p = Page(m, f"Scan '{name}' against its nominal ({nc['nominal']})")
+    al = nc["alignment"]
+    coarse = {"datum": "the datum given", "fpfh_ransac": "RANSAC on FPFH features"}.get(
+        al.get("coarse"), str(al.get("coarse")))
+    p.text(f"Aligned to the nominal ({fmt(nc['triangles'])} triangles): coarse by {coarse}, then "
+           f"point-to-plane ICP on the mesh's closest points with a Tukey kernel "
+           f"({fmt(al.get('iterations'))} iterations; fitness {fmt(al.get('fitness'), '', 3)}, "
+           f"inlier RMS {fmt(al.get('inlier_rmse_mm'), 'mm')}). Signed distance to the nominal "
+           "surface, positive: material excess.", size=8.2)
+    p.text(f"{fmt(nc.get('share_within_tolerance'), '%')} of {fmt(nc['n'])} points within "
+           f"±{nc['tolerance_mm']:g} mm; mean {fmt(nc.get('mean_mm'), 'mm', signed=True)}, RMS "
+           f"{fmt(nc.get('rms_mm'), 'mm')}, 2.5–97.5 % {fmt(nc.get('p2_5_mm'), 'mm', signed=True)}"
+           f" to {fmt(nc.get('p97_5_mm'), 'mm', signed=True)}, min / max "
+           f"{fmt(nc.get('min_mm'), 'mm', signed=True)} / {fmt(nc.get('max_mm'), 'mm', signed=True)}."
+           f" Not compared: {fmt(nc.get('n_support', 0))} points on the plane the part stands on "
+           f"(which the drawing leaves open), {fmt(nc.get('n_excluded', 0))} farther than "
+           f"{fmt(nc.get('max_distance_mm'), 'mm', 1)} from it.", size=8.2)
+    data = plots.get("nominal")
+    if data is not None and len(data["dev"]):
+        limit = max(2.0 * float(nc["tolerance_mm"]), float(np.nanpercentile(np.abs(data["dev"]), 99)))
+        top = p.y - 0.01
+        deviation_map_figure(data["points"], data["dev"], limit, regions=data["regions"],
+                             tolerance_mm=float(nc["tolerance_mm"]), fig=p.fig,
+                             rect=(LEFT + 0.05, top - 0.5, RIGHT - 0.05, top))
+        p.y = top - 0.54
+    regions = nc.get("regions") or []
+    if regions:
+        p.text(f"Regions beyond ±{nc['tolerance_mm']:g} mm ({fmt(nc.get('n_regions'))} in all; "
+               "the largest, numbered as on the map; depth: median of the region's 10 % most "
+               "extreme points)", size=9, weight="bold")
+        rows = [[str(g["id"]), fmt(g["n"]), ", ".join(f"{v:.2f}" for v in g["centroid_mm"]),
+                 fmt(g["extreme_mm"], "mm", signed=True), fmt(g["depth_mm"], "mm", signed=True)]
+                for g in regions]
+        p.table(["#", "points", "centroid (nominal frame, mm)", "extreme", "depth"], rows,
+                [LEFT, LEFT + 0.05, LEFT + 0.16, LEFT + 0.5, LEFT + 0.68],
+                aligns=["left", "right", "left", "right", "right"], size=7.6)
+    else:
+        p.text(f"No region beyond ±{nc['tolerance_mm']:g} mm.", size=8.2)
     return p.fig
 
 
@@ -1047,7 +1102,14 @@ def page_validation(m: dict[str, Any], plots: dict[str, Any]) -> list[Figure]:
                 rows.append(["", "diameter − true diameter", fmt(t["diameter_error_mm"], "mm",
                                                                   signed=True)])
         elif art == "freeform":
-            d = t["deviation_to_true_mesh"]
+            na = t.get("nominal_alignment")
+            if na:
+                rows.append([name, "nominal aligned vs its true placement: rotation / points "
+                             "moved RMS (max)", f"{fmt(na['rotation_deg'], '°', 5)} / "
+                             f"{fmt(na['rms_mm'], 'mm', 5)} ({fmt(na['max_mm'], 'mm', 5)})"])
+            d = t.get("deviation_to_true_mesh")
+            if not d:
+                continue
             rows.append([name, "signed distance to true mesh: mean / RMS",
                          f"{fmt(d['mean_mm'], 'mm', signed=True)} / {fmt(d['rms_mm'], 'mm')}"])
             rows.append(["", "|distance| 95th percentile / max",
@@ -1162,6 +1224,8 @@ def build_pages(metrics: dict[str, Any], plots: dict[str, Any]) -> list[Figure]:
         figs.append(page_handeye(metrics))
         for name in metrics["scans"]:
             figs.append(page_scan(metrics, name, plots["scans"].get(name, {})))
+            if metrics["scans"][name].get("nominal_comparison"):
+                figs.append(page_nominal(metrics, name, plots["scans"].get(name, {})))
         if metrics.get("validation"):
             figs.extend(page_validation(metrics, plots))
         figs.extend(page_provenance(metrics))
