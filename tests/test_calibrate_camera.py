@@ -255,6 +255,7 @@ def test_six_rendered_views_predict_their_own_error(quick_capture, tmp_path) -> 
     cap = tmp_path / "capture"
     shutil.copytree(quick_capture / "calibration" / "camera", cap / "calibration" / "camera")
     shutil.copy(quick_capture / "rig.yaml", cap / "rig.yaml")
+    shutil.copy(quick_capture / "part.stl", cap / "part.stl")  # rig.yaml names it
     for p in sorted((cap / "calibration" / "camera").glob("*.png"))[6:]:
         p.unlink()
     cam = run_calibrate_camera(cap, tmp_path / "camera.json", views="camera", threads=2)

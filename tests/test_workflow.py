@@ -121,8 +121,9 @@ def test_full_run_outputs(done_workdir: Path) -> None:
 
 
 def test_export_formats_add_the_e57_clouds(done_workdir: Path, tmp_path: Path) -> None:
-    """export.formats [e57]: one export job per scan and nothing else; each E57 holds the
-    points of its PLY (read back with Open3D), in mm."""
+    """export.formats [e57]: one export job per scan and nothing else; the rule's E57 holds
+    the points of its PLY (read back with Open3D), in mm. (One scan's job is run: the
+    writer itself is tested in test_clouds.py.)"""
     import open3d as o3d
 
     from crossline.io.clouds import read_e57
@@ -134,13 +135,13 @@ def test_export_formats_add_the_e57_clouds(done_workdir: Path, tmp_path: Path) -
     (wd / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
     scans = sorted(json.loads((wd / "data/interim/q/check.json").read_text())["scans"])
     assert planned_jobs(wd) == {"export_cloud": len(scans)}
-    snakemake(wd)
-    for s in scans:
-        ply = np.asarray(o3d.io.read_point_cloud(str(wd / f"data/processed/q/{s}.ply")).points)
-        e57 = read_e57(wd / f"data/processed/q/{s}.e57")["points"]
-        assert len(ply) > 100
-        np.testing.assert_allclose(e57, ply, atol=1e-6)
-    assert planned_jobs(wd) == {}
+    s = scans[0]
+    snakemake(wd, f"data/processed/q/{s}.e57")
+    ply = np.asarray(o3d.io.read_point_cloud(str(wd / f"data/processed/q/{s}.ply")).points)
+    e57 = read_e57(wd / f"data/processed/q/{s}.e57")["points"]
+    assert len(ply) > 100
+    np.testing.assert_allclose(e57, ply, atol=1e-6)
+    assert planned_jobs(wd) == {"export_cloud": len(scans) - 1}
 
 
 def _rerun_set(done: Path, tmp: Path, section: str, key: str, value) -> dict[str, int]:
