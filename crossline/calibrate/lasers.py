@@ -296,7 +296,8 @@ def stripe_points(
     plate = (~light if board.circles == "light" else light).astype(np.uint8)
     k = 2 * int(np.ceil(margin_px)) + 1
     plate = cv2.erode(plate, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))).astype(bool)
-    dm = np.where(plate & _board_area(camera, T, board, diff.shape), diff, 0)
+    area = _board_area(camera, T, board, diff.shape)
+    dm = np.where(plate & area, diff, 0)
     peak = _peak(dm)
     if peak <= floor and (anywhere := _peak(diff)) > floor:
         raise CalibrationError(
@@ -314,7 +315,6 @@ def stripe_points(
     axis = _stripe_axis(dm, thr, lambda uv: clearance_px(uv) > 0)
     albedo = None
     if normalise_albedo:
-        area = _board_area(camera, T, board, diff.shape)
         other = light if board.circles == "light" else ~light  # the class the plate is not
         found = albedo_gain(diff_f, a * board_image.astype(np.float32) + b, plate, other, area,
                             axis, floor / scale, clearance_px)
