@@ -29,6 +29,8 @@ OUT = REPO / "docs" / "results.md"
 AREAS: dict[str, tuple[str, str]] = {
     "rigs": ("Accuracy on random rigs, every target", "python benchmarks/bench_rigs.py"),
     "calibration": ("Camera and laser planes against truth", "python benchmarks/bench_calibration.py"),
+    "laser_planes": ("Laser planes on other boards, with and without the albedo gain",
+                     "python benchmarks/bench_laser_planes.py"),
     "corners": ("Chessboard corners", "python benchmarks/bench_corners.py"),
     "handeye_seeds": ("Hand-eye over seeds", "python benchmarks/bench_handeye.py"),
     "handeye_noise": ("Hand-eye under arm noise", "python benchmarks/bench_handeye.py"),

@@ -65,7 +65,8 @@ def test_plane_from_rendered_poses(rays: np.ndarray) -> None:
         classes.append(2 * k + s.on_other)
     # as the stage fits: each pose and albedo class with its own noise (the centres inside
     # the dark circles, where the stripe is 8x weaker against the same additive noise)
-    n, d, inliers = robust_plane(np.concatenate(pts), noise_groups=np.concatenate(classes))
+    n, d, inliers = robust_plane(np.concatenate(pts), groups=np.concatenate(classes) // 2,
+                                 noise_groups=np.concatenate(classes))
     if n @ N_TRUE < 0:
         n, d = -n, -d
     assert np.degrees(angle_between(n, N_TRUE)) < 0.005
@@ -288,7 +289,8 @@ def test_small_chessboard_squares_with_the_albedo_taken_out(rays: np.ndarray) ->
             pass
     assert n_plain < sum(map(len, pts)) / 3
     P = np.concatenate(pts)
-    n, d, _ = robust_plane(P, noise_groups=np.concatenate(classes))
+    n, d, _ = robust_plane(P, groups=np.concatenate(classes) // 2,
+                           noise_groups=np.concatenate(classes))
     # the fitted plane against the true one where the board was (three short segments on a
     # 25 mm board: the angle alone would overstate what a measurement there feels)
     on_true = P - (P @ N_TRUE + D_TRUE)[:, None] * N_TRUE
