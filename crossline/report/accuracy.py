@@ -69,8 +69,8 @@ DEFAULT_METROLOGY: dict[str, Any] = {
     # gauge heights referenced to the plate in the same frame ("frame", cancels the arm's pose
     # error of each frame) or to the plate plane of the whole scan ("plane", the paper's)
     "gauge_reference": "frame",
-    # validation: the measured volume's depths in front of the camera; None = where the true
-    # laser planes cross the scan window (the rig's measuring range)
+    # validation: the measured volume's depths in front of the camera; None = the depths the
+    # scans measured at, else where the true laser planes cross the scan window
     "volume_z_mm": None,
     "freeform_max_distance_mm": 1.0,  # validation: farther from the true part = not the part's
     "histogram_bins": 60,
