@@ -20,8 +20,10 @@ __all__ = [
     "matrix_to_quat",
     "matrix_to_rotvec",
     "orthonormalize",
+    "plane_covariance",
     "plane_distance",
     "plane_line_intersection",
+    "plane_tilt_basis",
     "quat_to_matrix",
     "rotation_angle",
     "rotvec_to_matrix",
@@ -165,6 +167,58 @@ def fit_plane(points: np.ndarray, weights: np.ndarray | None = None) -> tuple[np
     if d > 0:
         n, d = -n, -d
     return n, d
+
+
+def plane_tilt_basis(normal: np.ndarray) -> np.ndarray:
+    """Two unit vectors (2, 3) orthogonal to ``normal`` and to each other: the axes along which
+    :func:`plane_covariance` tilts a plane (``n' ∝ n + a e1 + b e2``)."""
+    n = np.asarray(normal, dtype=np.float64) / np.linalg.norm(normal)
+    helper = np.eye(3)[int(np.argmin(np.abs(n)))]
+    e1 = np.cross(n, helper)
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(n, e1)])
+
+
+def plane_covariance(
+    points: np.ndarray, normal: np.ndarray, d: float, *,
+    weights: np.ndarray | None = None, clusters: np.ndarray | None = None,
+) -> np.ndarray:
+    """Covariance (3, 3) of a least-squares plane's tilts ``(a, b)`` along
+    :func:`plane_tilt_basis` (rad) and its offset ``d`` (mm), from the points it was fitted to.
+
+    With ``weights`` (N,) of ``1 / sigma_i^2`` the fit's information matrix ``H = J^T W J``,
+    scaled by the weighted residual variance, gives the covariance for independent errors.
+    Points of one ``cluster`` (N,) (a board pose: its stripe moves with the pose's error)
+    share an error; the cluster-robust (sandwich) covariance
+    ``H^-1 (sum_g s_g s_g^T) H^-1 G / (G - 1)``, ``s_g = sum_{i in g} w_i r_i J_i``, measures
+    that from the scatter between clusters. The larger of the two in every direction is
+    returned: with few clusters the sandwich alone can miss a direction the points still
+    constrain only so well.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    n = np.asarray(normal, dtype=np.float64)
+    w = np.ones(len(p)) if weights is None else np.asarray(weights, dtype=np.float64)
+    E = plane_tilt_basis(n)
+    J = np.column_stack([p @ E[0], p @ E[1], np.ones(len(p))])
+    r = p @ n + d
+    H = (J * w[:, None]).T @ J
+    Hi = np.linalg.inv(H)
+    scale = float(np.sum(w * r**2) / max(len(p) - 3, 1))
+    C = scale * Hi
+    if clusters is not None:
+        g = np.unique(clusters, return_inverse=True)[1]
+        G = int(g.max()) + 1
+        if G > 1:
+            S = np.zeros((G, 3))
+            np.add.at(S, g, (w * r)[:, None] * J)
+            Cs = Hi @ (S.T @ S) @ Hi * (G / (G - 1))
+            # add what the sandwich finds beyond the independent-error covariance
+            L = np.linalg.cholesky(C)
+            Li = np.linalg.inv(L)
+            vals, vecs = np.linalg.eigh(Li @ Cs @ Li.T)
+            extra = vecs @ np.diag(np.maximum(vals - 1.0, 0.0)) @ vecs.T
+            C = C + L @ extra @ L.T
+    return 0.5 * (C + C.T)
 
 
 def plane_distance(points: np.ndarray, normal: np.ndarray, d: float) -> np.ndarray:

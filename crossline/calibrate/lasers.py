@@ -40,7 +40,7 @@ from crossline.calibrate.detect import detect_board, to_uint8
 from crossline.calibrate.pose import board_pose
 from crossline.camera import Camera
 from crossline.errors import CalibrationError, CrosslineError
-from crossline.geometry import fit_plane, plane_distance
+from crossline.geometry import fit_plane, plane_covariance, plane_distance, plane_tilt_basis
 from crossline.laser import LASERS, LaserPlane, LaserPlanes
 
 __all__ = [
@@ -48,6 +48,7 @@ __all__ = [
     "albedo_gain",
     "board_plane_points",
     "edge_clearance",
+    "group_sigma",
     "robust_plane",
     "run_calibrate_lasers",
     "stripe_points",
@@ -450,6 +451,18 @@ def ambient_model(board_image: np.ndarray, laser_image: np.ndarray, step: int = 
     return float(a), float(b)
 
 
+def group_sigma(residuals: np.ndarray, groups: np.ndarray, inliers: np.ndarray) -> np.ndarray:
+    """Each point's noise (N,): the robust sigma (1.4826 MAD) of its group's inlier residuals
+    (all of the group's where fewer than 5 are inliers)."""
+    r = np.asarray(residuals, dtype=np.float64)
+    sigma = np.empty(len(r))
+    for k in np.unique(groups):
+        mk = groups == k
+        rk = r[mk & inliers] if (mk & inliers).sum() >= 5 else r[mk]
+        sigma[mk] = 1.4826 * np.median(np.abs(rk - np.median(rk)))
+    return np.maximum(sigma, 1e-12)
+
+
 def robust_plane(
     points: np.ndarray,
     trim: float = 3.0,
@@ -494,12 +507,7 @@ def robust_plane(
     inl = np.ones(len(p), dtype=bool)
     for _ in range(50):
         r = plane_distance(p, n, d)
-        sigma = np.empty(len(p))
-        for k in np.unique(ng_):
-            mk = ng_ == k
-            rk = r[mk & inl] if (mk & inl).sum() >= 5 else r[mk]
-            sigma[mk] = 1.4826 * np.median(np.abs(rk - np.median(rk)))
-        sigma = np.maximum(sigma, 1e-12)
+        sigma = group_sigma(r, ng_, inl)
         new = np.abs(r) <= trim * sigma
         if new.sum() < 3:
             break
@@ -604,8 +612,7 @@ def run_calibrate_lasers(
         pts = np.concatenate([s.points for _, s in mine])
         pose_of = np.concatenate([np.full(len(s.points), i) for i, (_, s) in enumerate(mine)])
         other = np.concatenate([s.on_other for _, s in mine])
-        nrm, d, inl = robust_plane(pts, trim=trim, groups=pose_of,
-                                   noise_groups=2 * pose_of + other)
+        nrm, d, inl = robust_plane(pts, trim=trim, groups=pose_of, noise_groups=2 * pose_of + other)
         k = 0
         poses = []
         for v, s in mine:
@@ -627,8 +634,20 @@ def run_calibrate_lasers(
             })
             k += m
         r = plane_distance(pts[inl], nrm, d)
+        noise = 2 * pose_of + other
+        sigma = group_sigma(plane_distance(pts, nrm, d), np.unique(noise, return_inverse=True)[1], inl)
+        cov = plane_covariance(pts[inl], nrm, d, weights=1.0 / sigma[inl] ** 2,
+                               clusters=pose_of[inl])
         planes[laser] = LaserPlane(nrm, d, {
             "rms_mm": float(np.sqrt(np.mean(r**2))),
+            "covariance": {
+                "parameters": ["tilt_e1_rad", "tilt_e2_rad", "d_mm"],
+                "tilt_basis": plane_tilt_basis(nrm).tolist(),
+                "matrix": cov.tolist(),
+                "note": "1 sigma: the weighted fit's own, or where larger the scatter between "
+                        "poses (cluster-robust); n' ∝ n + a e1 + b e2, d' = d + δd. The camera "
+                        "calibration's error, common to every pose, is not in it",
+            },
             "n_points": len(pts),
             "n_used": int(inl.sum()),
             "n_rejected": int((~inl).sum()),
