@@ -95,16 +95,19 @@ def meets(name: str, value: float) -> bool | None:
     return abs(value) <= target
 
 
-def render(seeds: list[int], quick: bool, preset: str = "random-small") -> dict[str, Path]:
-    """Render (or reuse) one capture per seed; returns capture name -> folder."""
+def render(seeds: list[int], quick: bool, preset: str = "random-small", *, cache: Path = CACHE,
+           scans: list[str] | None = None) -> dict[str, Path]:
+    """Render (or reuse) one capture per seed (``scans``: a subset of the preset's); returns
+    capture name -> folder."""
     caps = {}
     for seed in seeds:
         name = f"{preset}-{seed}{'' if quick else '-full'}"
-        out = CACHE / "captures" / name
+        out = cache / "captures" / name
         if not (out / "rig.yaml").is_file():
             shutil.rmtree(out, ignore_errors=True)
             cmd = ["crossline", "simulate", str(out), "--preset", preset, "--seed", str(seed)]
             cmd += ["--quick"] if quick else []
+            cmd += ["--scans", ",".join(scans)] if scans else []
             t0 = time.perf_counter()
             subprocess.run(cmd, check=True, capture_output=True, text=True)
             print(f"rendered {name} in {time.perf_counter() - t0:.0f} s", flush=True)
@@ -112,9 +115,9 @@ def render(seeds: list[int], quick: bool, preset: str = "random-small") -> dict[
     return caps
 
 
-def run_workflow(caps: dict[str, Path], cores: int) -> tuple[Path, float]:
+def run_workflow(caps: dict[str, Path], cores: int, cache: Path = CACHE) -> tuple[Path, float]:
     """All captures through the workflow in one Snakemake run; returns the workdir and wall time."""
-    wd = CACHE / "work"
+    wd = cache / "work"
     wd.mkdir(parents=True, exist_ok=True)
     shutil.copy(REPO / "Snakefile", wd)
     for d in ("workflow", "profiles"):

@@ -75,6 +75,9 @@ DEFAULT_METROLOGY: dict[str, Any] = {
     "freeform_max_distance_mm": 1.0,  # validation: farther from the true part = not the part's
     "histogram_bins": 60,
     "seed": 0,
+    # Monte Carlo draws per contributor for each figure's uncertainty (0: none); u to about
+    # 1 / sqrt(2 (draws - 1)) of itself, 5 % at 200
+    "uncertainty_draws": 200,
 }
 
 FORM_KEYS = {"all": "form_error_mm", "d95": "form_error_d95_mm", "p95": "form_error_p95_mm"}
@@ -291,6 +294,38 @@ def _check(
                  "status": status, "note": note})
 
 
+# the Monte Carlo figure whose uncertainty a summary row's value has
+ROW_FIGURES = {"gauge_mean_error_mm": "mean_mm", "plane_within_share": "share_within_band",
+               "plane_flatness_95_mm": "flatness_95_mm", "sphere_size_error_mm": "diameter_mm",
+               "sphere_form_error_mm": None,  # the configured form statistic's
+               "sphere_form_error_d95_mm": "form_error_d95_mm"}
+
+
+def _with_uncertainty(row: dict, unc: dict | None, form_key: str) -> None:
+    """Give a summary row its expanded uncertainty U (k = 2) and the ISO 14253-1 decision.
+
+    Conformance is proven where the value is inside the limit by at least U, non-conformance
+    where it is outside by more than U; in between the result is inconclusive (the PASS/FAIL
+    status stays the plain comparison of the value).
+    """
+    key = ROW_FIGURES.get(row["id"], "") or (form_key if row["id"] in ROW_FIGURES else "")
+    fig = ((unc or {}).get("figures") or {}).get(key) if key else None
+    if fig is None or row["value"] is None:
+        return
+    U = float(fig["U"])
+    row["U"] = U
+    row["k"] = fig["k"]
+    row["dominant"] = fig["dominant"]
+    if row["tolerance"] is None:
+        return
+    v = abs(row["value"]) if row["abs"] else row["value"]
+    lim = row["tolerance"]
+    inside, outside = (v + U <= lim, v - U > lim) if row["comparison"] == "<=" else \
+        (v - U >= lim, v + U < lim)
+    row["decision"] = ("conforms" if inside else "does not conform" if outside
+                       else "inconclusive (within U of the limit)")
+
+
 # ----------------------------------------------------------------------------- measure
 
 
@@ -360,10 +395,36 @@ def _alignment_error(T_nominal_cloud: np.ndarray, T_base_nominal: np.ndarray,
     return {k: v for k, v in e.items() if isinstance(v, int | float)}
 
 
+def _uncertainty(sd: ScanData, figures: Any, model: Any, met: dict, root: Path) -> dict[str, Any]:
+    """Each figure's Monte Carlo uncertainty (:mod:`crossline.report.uncertainty`) on the scan's cloud."""
+    from crossline.io.capture import read_frames_table
+    from crossline.report import uncertainty as uc
+
+    table = read_frames_table(root / "scans" / sd.name / "frames.csv")
+    c = sd.cloud
+    laser = np.where(np.asarray(c["laser"]) == 2, "B", "A")
+    sp = uc.scan_points(c["points"], laser, c["frame"], table.frames, table.T_base_tool, model)
+    draws = int(met["uncertainty_draws"])
+    out = {"figures": uc.monte_carlo(sp, model, figures, draws=draws, seed=int(met["seed"])),
+           "draws": draws, "frames": sp.n_frames, "points": len(sp.points),
+           "contributors": list(uc.CONTRIBUTORS), "coverage_factor": uc.COVERAGE_FACTOR,
+           "method": "GUM Supplement 1 Monte Carlo; " + " ".join(
+               (uc.__doc__ or "").split("What is drawn, and what is not:")[0].split())}
+    if model.missing:
+        out["incomplete"] = list(model.missing)
+    return out
+
+
 def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: Path,
-                  files: list, lasers: tuple[str, ...] = ("A", "B")) -> dict[str, Any]:
-    """The figures of one scan (counts, artefact, A vs B, truth) and its plot arrays."""
+                  files: list, lasers: tuple[str, ...] = ("A", "B"), model: Any = None
+                  ) -> dict[str, Any]:
+    """The figures of one scan (counts, artefact, A vs B, truth) and its plot arrays.
+
+    With a calibration ``model`` (:func:`crossline.report.uncertainty.calibration_model`) each
+    checked figure gets its Monte Carlo uncertainty under ``uncertainty``.
+    """
     from crossline.report import metrics as mt
+    from crossline.report import uncertainty as uc
 
     out: dict[str, Any] = {"artefact": sd.artefact, "nominal": sd.nominal,
                            "cloud_source": sd.cloud_source or None}
@@ -416,6 +477,7 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
     tscan = (truth or {}).get("scans", {}).get(sd.name) if truth else None
     sd.plots["hist"] = None
     height_ref: tuple[np.ndarray, float] | None = None  # plane the top view's height is from
+    figures = None  # the artefact's figures as a function of its points, for the uncertainty
     try:
         if sd.artefact == "gauge_block":
             nominal = float(sd.nominal.get("height", np.nan))
@@ -429,6 +491,7 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
             sd.plots["hist"] = {"values": g.heights, "xlabel": "height above the plate plane (mm)",
                                 "nominal": nominal, "bins": bins, "kind": "gauge"}
             height_ref = (g.plate_normal, g.plate_d)
+            figures = uc.gauge_figures(g, P, frames)
             if tscan:
                 out["truth"] = _gauge_truth(g, P, tscan, nominal)
         elif sd.artefact == "plane":
@@ -438,6 +501,7 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
             sd.plots["hist"] = {"values": r.distances, "xlabel": "distance to the fitted plane (mm)",
                                 "band": band, "bins": bins, "kind": "plane"}
             height_ref = (r.normal, r.d)
+            figures = uc.plane_figures(r, band)
             if tscan and "plane_base" in tscan:
                 nt, dt = _plane4(tscan["plane_base"], r.normal)
                 dev = P @ nt + dt
@@ -450,6 +514,7 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
                                   trim_sigma=float(met["sphere_trim_sigma"]), seed=seed)
             out["measurement"] = s.figures()
             out["a_vs_b"] = _ab(mt.compare_lasers, "sphere", P, labels, out, sphere=s)
+            figures = uc.sphere_figures(s)
             views = _viewpoints(sd)
             if views is not None:
                 out["incidence"] = mt.sphere_by_incidence(P, s, views)
@@ -503,6 +568,15 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
     except ValueError as exc:
         out["error"] = str(exc)
         log.warning("scan %s: %s", sd.name, exc)
+    if figures is not None and model is not None and int(met["uncertainty_draws"]) > 1:
+        if sd.cloud.get("frame") is None:
+            out["uncertainty_error"] = "the cloud has no frame of each point"
+        else:
+            try:
+                out["uncertainty"] = _uncertainty(sd, figures, model, met, root)
+            except (CrosslineError, ValueError, np.linalg.LinAlgError) as exc:
+                out["uncertainty_error"] = str(exc)
+                log.warning("scan %s: no uncertainty: %s", sd.name, exc)
     if tscan and tscan.get("centrelines") and sd.points_path is not None:
         out["truth_labels"] = _label_truth(sd.points_path, root / str(tscan["centrelines"]), files)
 
@@ -925,13 +999,22 @@ def build_report(
     rows: list[dict[str, Any]] = []
     scans: dict[str, Any] = {}
     form_key = FORM_KEYS[met["sphere_form_statistic"]]
+    model = None
+    if all(inputs.get(k) for k in ("camera", "lasers", "handeye")):
+        from crossline.report.uncertainty import calibration_model
+
+        try:
+            model = calibration_model(inputs["camera"], inputs["lasers"], inputs["handeye"])
+        except (KeyError, ValueError, TypeError) as exc:
+            log.warning("no measurement uncertainty: the calibration cannot be read (%s)", exc)
     depths: list[np.ndarray] = []
     for name in sorted(rig.scans):
         sd = _load_scan(name, rig.scans[name], capture, interim_dir, processed_dir, files)
         if truth and sd.points_path is not None:
             depths.append(_point_depths(sd.points_path))
-        s = _measure_scan(sd, tol, met, truth, capture, files, lasers)
+        s = _measure_scan(sd, tol, met, truth, capture, files, lasers, model)
         scans[name] = s
+        first_row = len(rows)
         plots["scans"][name] = sd.plots
         m = s.get("measurement") or {}
         ab = (s.get("a_vs_b") or {}).get("A_minus_B", {})
@@ -999,6 +1082,8 @@ def build_report(
             if dev:
                 _check(rows, "freeform_rms_mm", "freeform: RMS deviation from true surface",
                        name, dev.get("rms_mm"), "mm", None)
+        for row in rows[first_row:]:
+            _with_uncertainty(row, s.get("uncertainty"), form_key)
     metrics["summary"] = rows
     statuses = [r["status"] for r in rows]
     if "FAIL" in statuses:

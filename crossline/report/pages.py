@@ -75,9 +75,14 @@ def _um(mm: float | None) -> str:
 
 
 def fmt_row_value(row: dict[str, Any]) -> str:
-    """The measured value of a summary row."""
+    """The measured value of a summary row, with ``± U`` where it has an uncertainty."""
     signed = row.get("abs", False)
-    return fmt(row.get("value"), row.get("unit", ""), signed=signed)
+    unit = row.get("unit", "")
+    text = fmt(row.get("value"), unit, signed=signed)
+    if row.get("U") is None or text == "–":
+        return text
+    tail = " %" if unit == "%" else f" {unit}" if unit else ""
+    return f"{text.removesuffix(tail)} ± {fmt(row['U'], unit)}"
 
 
 def fmt_tolerance(row: dict[str, Any]) -> str:
@@ -308,8 +313,8 @@ def page_summary(m: dict[str, Any]) -> Figure:
     cells = [[r["figure"], r["scan"] or "", fmt_row_value(r), fmt_tolerance(r), r["status"]]
              for r in rows]
     colours = [[None, None, None, None, COLOURS.get(r["status"])] for r in rows]
-    p.table(["Figure", "Scan", "Measured", "Tolerance", "Result"], cells,
-            [LEFT, LEFT + 0.38, LEFT + 0.50, LEFT + 0.66, LEFT + 0.81], colours=colours,
+    p.table(["Figure", "Scan", "Measured ± U (k = 2)", "Tolerance", "Result"], cells,
+            [LEFT, LEFT + 0.36, LEFT + 0.44, LEFT + 0.68, LEFT + 0.83], colours=colours,
             aligns=["left", "left", "right", "right", "left"], size=8.2)
     notes = [r for r in rows if r.get("note")]
     for r in notes:
@@ -362,6 +367,9 @@ def page_summary(m: dict[str, Any]) -> Figure:
         "Histograms span 0.1–99.9 % of the values (at most ±8 robust sigmas); the rest are",
         "counted in the end bins.",
         "Result: PASS when every checked figure passes; FAIL if any fails; INCOMPLETE otherwise.",
+        "U: expanded uncertainty (k = 2) by Monte Carlo over the calibration's covariances and the",
+        "scan's frames; its budget, and the ISO 14253-1 decision against U, are on the page",
+        "'Measurement uncertainty'.",
     ):
         p.text(line, size=7.8)
     return p.fig
@@ -1215,6 +1223,84 @@ def page_provenance(m: dict[str, Any]) -> list[Figure]:
 # ----------------------------------------------------------------------------- assembly
 
 
+UNCERTAINTY_FIGURES = {"mean_mm": "gauge height (mean)", "flatness_mm": "flatness (all points)",
+                       "flatness_95_mm": "flatness (2.5–97.5 %)", "rms_mm": "RMS to the plane",
+                       "share_within_band": "share within the band", "diameter_mm": "diameter",
+                       "form_error_mm": "form error (all)", "form_error_d95_mm": "form error (D95)",
+                       "form_error_p95_mm": "form error (2.5–97.5 %)"}
+BUDGET = {"camera": "camera", "laser_planes": "planes", "handeye": "hand-eye",
+          "repeatability": "frames"}
+
+
+def page_uncertainty(m: dict[str, Any]) -> Figure | None:
+    """The uncertainty budget: each figure's U (k = 2), 95 % interval and contributors."""
+    scans = {n: s["uncertainty"] for n, s in m["scans"].items() if s.get("uncertainty")}
+    errors = {n: s["uncertainty_error"] for n, s in m["scans"].items() if s.get("uncertainty_error")}
+    if not scans and not errors:
+        return None
+    p = Page(m, "Measurement uncertainty")
+    first = next(iter(scans.values()), {})
+    p.text(f"GUM Supplement 1 Monte Carlo, {first.get('draws', '–')} draws per contributor and as "
+           "many of all together. Each draw re-triangulates the scan's own stripe centres with a "
+           "calibration drawn from the calibration's covariances (camera intrinsics and "
+           "distortion, both laser planes, hand-eye X) and draws the scan's frames again with "
+           "replacement (repeatability: stripe noise, speckle and the arm's pose noise as this "
+           "scan realised them); the figure is measured again with the report's definition and "
+           "segmentation. U = 2 u of all together; the 95 % interval of the draws, from the value; "
+           "u: the standard uncertainty of each contributor alone. Lengths in µm, shares in %.",
+           size=8)
+    p.gap(0.08)
+    cells, colours = [], []
+    for name, unc in scans.items():
+        for key, f in unc["figures"].items():
+            share = key == "share_within_band"  # a fraction: in %, the lengths in µm
+            scale = 100 if share else 1e3
+            lo, hi = (x - f["value"] for x in f["interval_95"])
+            cells.append([name, UNCERTAINTY_FIGURES.get(key, key),
+                          fmt(f["value"], "%") if share else fmt(f["value"], "mm"),
+                          fmt(f["U"] * scale, "", 2),
+                          f"{fmt(lo * scale, '', 2, signed=True)} … {fmt(hi * scale, '', 2, signed=True)}",
+                          *[fmt(f["budget"][c]["u"] * scale, "", 2) for c in BUDGET],
+                          BUDGET.get(f["dominant"], f["dominant"])])
+            colours.append([None] * 11)
+    if cells:
+        p.table(["Scan", "Figure", "Value", "U", "95 % interval − value",
+                 *[f"u {v}" for v in BUDGET.values()], "Dominant"], cells,
+                [LEFT, LEFT + 0.07, LEFT + 0.24, LEFT + 0.35, LEFT + 0.42, LEFT + 0.56, LEFT + 0.63,
+                 LEFT + 0.69, LEFT + 0.76, LEFT + 0.82], size=6.8,
+                aligns=["left", "left", "right", "right", "right", "right", "right", "right",
+                        "right", "left"])
+    for name, why in errors.items():
+        p.text(f"{name}: no uncertainty: {why}", size=7.5, color=COLOURS["N/A"])
+    for name, unc in scans.items():
+        for why in unc.get("incomplete", []):
+            p.text(f"{name}: incomplete, {why}: that contributor counts as zero.", size=7.5,
+                   color=COLOURS["N/A"])
+    decided = [r for r in m["summary"] if r.get("decision")]
+    if decided:
+        p.gap(0.12)
+        p.text("Decision rule (ISO 14253-1)", size=10, weight="bold")
+        p.text("Conformance is proven where the value lies inside the limit by at least U, "
+               "non-conformance where it lies outside by more than U; in between the result is "
+               "inconclusive. The summary's PASS/FAIL compares the value alone.", size=8)
+        p.gap(0.04)
+        p.table(["Figure", "Scan", "Measured ± U", "Tolerance", "Decision"],
+                [[r["figure"], r["scan"] or "", fmt_row_value(r), fmt_tolerance(r), r["decision"]]
+                 for r in decided],
+                [LEFT, LEFT + 0.33, LEFT + 0.41, LEFT + 0.63, LEFT + 0.78], size=7.5,
+                aligns=["left", "left", "right", "right", "left"])
+    p.gap(0.1)
+    p.text("What U covers, and what it does not", size=10, weight="bold")
+    p.text("Covered: the calibration's own noise (as its fits estimate it) and the scan's "
+           "repeatability. Not covered: the planes' share of the camera's error (drawn "
+           "independently here), the camera's model error where distortion terms were fixed, "
+           "the arm's systematic error beyond what hand-eye absorbed, biases of the stripe "
+           "centres with the angle of incidence (see the sphere's size by incidence), the "
+           "artefact's own calibration and temperature. How often the true value lies within "
+           "±U on simulated captures: benchmarks/bench_uncertainty.py.", size=8)
+    return p.fig
+
+
 def build_pages(metrics: dict[str, Any], plots: dict[str, Any]) -> list[Figure]:
     """Every page of the report, in order, with page numbers in the footer."""
     with matplotlib.rc_context(RC):
@@ -1226,6 +1312,9 @@ def build_pages(metrics: dict[str, Any], plots: dict[str, Any]) -> list[Figure]:
             figs.append(page_scan(metrics, name, plots["scans"].get(name, {})))
             if metrics["scans"][name].get("nominal_comparison"):
                 figs.append(page_nominal(metrics, name, plots["scans"].get(name, {})))
+        unc = page_uncertainty(metrics)
+        if unc is not None:
+            figs.append(unc)
         if metrics.get("validation"):
             figs.extend(page_validation(metrics, plots))
         figs.extend(page_provenance(metrics))

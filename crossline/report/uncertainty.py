@@ -1,0 +1,327 @@
+"""Measurement uncertainty of the report's figures by Monte Carlo (GUM Supplement 1).
+
+What is drawn, and what is not:
+
+* **camera**: intrinsics and distortion from the bundle adjustment's covariance
+  (``camera.json`` ``uncertainty.covariance``);
+* **laser planes**: each plane's tilts and offset from its fit's covariance
+  (``lasers.json`` ``<laser>.covariance``: the fit's own or the scatter between poses);
+* **hand-eye**: ``X`` from its refinement's covariance (``handeye.json``
+  ``methods.refined.uncertainty.covariance_X``), ``X_true = X exp(ω, t)``;
+* **repeatability**: the scan's frames drawn again with replacement (a bootstrap over frames):
+  what the stripe centres' noise, the speckle and the arm's pose noise of each frame do to a
+  figure, as this scan realised them.
+
+Each draw re-triangulates the scan's own stripe centres: every point of the report's cloud is
+carried back to its camera frame and pixel with the calibration it was made with, then forward
+with the drawn calibration, and its move is added to it (so pose refinement and outlier removal
+stay as the report had them). The figure is measured again with the report's own definition and
+segmentation (the points the report used for each face, the ball's inliers). The camera, the
+planes and ``X`` are drawn independently: the planes' fit shares the camera's error, which this
+neglects. Not covered: the camera's model error where distortion terms were fixed, the arm's
+systematic (volumetric) error beyond what hand-eye absorbed, the nominal artefact's own
+calibration, and temperature.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from crossline.camera import Camera
+from crossline.geometry import fit_plane, invert_transform, rotvec_to_matrix
+from crossline.laser import LaserPlane, LaserPlanes
+from crossline.scan.triangulate import triangulate
+
+__all__ = [
+    "CONTRIBUTORS",
+    "CalibrationModel",
+    "ScanPoints",
+    "calibration_model",
+    "draw_calibration",
+    "gauge_figures",
+    "monte_carlo",
+    "plane_figures",
+    "scan_points",
+    "sphere_figures",
+]
+
+CONTRIBUTORS = ("camera", "laser_planes", "handeye", "repeatability")
+CAMERA_PARAMETERS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+COVERAGE_FACTOR = 2.0
+GN_STEPS = 6
+
+
+@dataclass(frozen=True)
+class CalibrationModel:
+    """A calibration and the covariances it is drawn from (None: that part is not known)."""
+
+    camera: Camera
+    planes: LaserPlanes
+    X: np.ndarray  # T_tool_cam
+    camera_cov: np.ndarray | None = None  # (9, 9) over CAMERA_PARAMETERS
+    plane_cov: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # basis, cov
+    X_cov: np.ndarray | None = None  # (6, 6) over (ω, t), rad and mm
+    missing: tuple[str, ...] = ()  # what has no covariance, in words
+
+
+def calibration_model(camera: dict, lasers: dict, handeye: dict) -> CalibrationModel:
+    """The model from the contents of camera.json, lasers.json and handeye.json."""
+    cam = Camera.from_dict(camera)
+    planes = LaserPlanes.from_dict(lasers)
+    X = np.asarray(handeye["T_tool_cam"], dtype=np.float64)
+    missing = []
+    cov = (camera.get("uncertainty") or {}).get("covariance")
+    cam_cov = None if cov is None else np.asarray(cov, dtype=np.float64)
+    if cam_cov is None or cam_cov.shape != (9, 9):
+        cam_cov = None
+        missing.append("camera.json has no 9 x 9 uncertainty.covariance")
+    plane_cov = {}
+    for name in planes.names:
+        c = lasers[name].get("covariance") or {}
+        try:
+            plane_cov[name] = (np.asarray(c["tilt_basis"], dtype=np.float64).reshape(2, 3),
+                               np.asarray(c["matrix"], dtype=np.float64).reshape(3, 3))
+        except (KeyError, ValueError, TypeError):
+            missing.append(f"lasers.json has no covariance of laser {name}'s plane")
+    xc = (((handeye.get("methods") or {}).get("refined") or {}).get("uncertainty") or {}).get(
+        "covariance_X")
+    X_cov = None if xc is None else np.asarray(xc, dtype=np.float64)
+    if X_cov is None or X_cov.shape != (6, 6):
+        X_cov = None
+        missing.append("handeye.json has no covariance of the refined X")
+    return CalibrationModel(cam, planes, X, cam_cov, plane_cov, X_cov, tuple(missing))
+
+
+def _gaussian(cov: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
+    return V @ (np.sqrt(np.maximum(w, 0.0)) * rng.standard_normal(len(w)))
+
+
+def draw_calibration(
+    model: CalibrationModel, rng: np.random.Generator, parts: tuple[str, ...] = CONTRIBUTORS
+) -> tuple[Camera, LaserPlanes, np.ndarray]:
+    """One calibration drawn from the model's covariances, for the ``parts`` named (others as is)."""
+    cam, planes, X = model.camera, model.planes, model.X
+    if "camera" in parts and model.camera_cov is not None:
+        x = dict(zip(CAMERA_PARAMETERS, _gaussian(model.camera_cov, rng), strict=True))
+        K = cam.K.copy()
+        K[0, 0] += x["fx"]
+        K[1, 1] += x["fy"]
+        K[0, 2] += x["cx"]
+        K[1, 2] += x["cy"]
+        dist = cam.dist + np.array([x["k1"], x["k2"], x["p1"], x["p2"], x["k3"]])
+        cam = Camera(K, dist, cam.image_size)
+    if "laser_planes" in parts and model.plane_cov:
+        drawn = {}
+        for name in planes.names:
+            pl = planes[name]
+            if name in model.plane_cov:
+                E, C = model.plane_cov[name]
+                a, b, dd = _gaussian(C, rng)
+                n = pl.normal + a * E[0] + b * E[1]
+                s = np.linalg.norm(n)
+                # d is the offset along the drawn normal, so scale with it (|n| is restored)
+                pl = LaserPlane(n, (pl.d + dd) * s)
+            drawn[name] = pl
+        planes = LaserPlanes(drawn["A"], drawn.get("B"))
+    if "handeye" in parts and model.X_cov is not None:
+        xi = _gaussian(model.X_cov, rng)
+        E = np.eye(4)
+        E[:3, :3] = rotvec_to_matrix(xi[:3])
+        E[:3, 3] = xi[3:]
+        X = X @ E
+    return cam, planes, X
+
+
+@dataclass(frozen=True)
+class ScanPoints:
+    """A cloud's points with what re-triangulating them needs: pixel, laser, frame's rotation."""
+
+    points: np.ndarray  # (N, 3) base frame, mm
+    uv: np.ndarray  # (N, 2) px, the pixel each point was triangulated from
+    laser: np.ndarray  # (N,) 'A' / 'B'
+    frame_index: np.ndarray  # (N,) index into the frames (for the bootstrap)
+    n_frames: int
+    R_base_tool: np.ndarray  # (N, 3, 3) the rotation of each point's frame
+    p_tool: np.ndarray  # (N, 3) the pixel's point on its plane, in the tool frame (model's X)
+
+
+def scan_points(
+    points: np.ndarray, laser: np.ndarray, frame: np.ndarray, frame_ids: np.ndarray,
+    T_base_tool: np.ndarray, model: CalibrationModel,
+) -> ScanPoints:
+    """Carry each point back to its camera frame and pixel (its frame's arm pose and ``X``).
+
+    Points whose frame is not in ``frame_ids`` are refused (ValueError): their pose is unknown.
+    """
+    P = np.asarray(points, dtype=np.float64)
+    frame = np.asarray(frame, dtype=np.int64)
+    order = np.argsort(frame_ids)
+    ids = np.asarray(frame_ids, dtype=np.int64)[order]
+    k = np.clip(np.searchsorted(ids, frame), 0, max(len(ids) - 1, 0))
+    if len(ids) == 0 or not np.all(ids[k] == frame):
+        bad = np.unique(frame[ids[k] != frame]) if len(ids) else np.unique(frame)
+        raise ValueError(f"{len(bad)} frame(s) of the cloud are not in frames.csv (e.g. {bad[:3]})")
+    T = np.asarray(T_base_tool, dtype=np.float64)[order][k]  # (N, 4, 4)
+    p_tool = np.einsum("nji,nj->ni", T[:, :3, :3], P - T[:, :3, 3])
+    Xi = invert_transform(model.X)
+    uv = model.camera.project(p_tool @ Xi[:3, :3].T + Xi[:3, 3])
+    laser = np.asarray(laser).astype(str)
+    # the reference is the pixel's own point on its plane: a refined pose moved the cloud's
+    # point off it by the correction, which is not the calibration's to undo
+    q0 = triangulate(model.camera, model.planes, uv, laser)
+    used, fidx = np.unique(k, return_inverse=True)
+    return ScanPoints(P, uv, laser, fidx, len(used), T[:, :3, :3],
+                      q0 @ model.X[:3, :3].T + model.X[:3, 3])
+
+
+def moved_points(sp: ScanPoints, camera: Camera, planes: LaserPlanes, X: np.ndarray) -> np.ndarray:
+    """The scan's points (N, 3) re-triangulated with another calibration."""
+    q = triangulate(camera, planes, sp.uv, sp.laser)
+    p_tool = q @ X[:3, :3].T + X[:3, 3]
+    return sp.points + np.einsum("nij,nj->ni", sp.R_base_tool, p_tool - sp.p_tool)
+
+
+Figures = Callable[[np.ndarray, np.ndarray], dict[str, float]]
+
+
+def _weighted_percentiles(x: np.ndarray, w: np.ndarray, q: tuple[float, ...]) -> np.ndarray:
+    """Percentiles of x with integer weights (a bootstrap's multiplicities): np.percentile of
+    x with each value repeated as often as its weight says."""
+    if np.all(w == 1):
+        return np.percentile(x, q)
+    return np.percentile(np.repeat(x, w.astype(np.int64)), q)
+
+
+def _weighted_plane(p: np.ndarray, w: np.ndarray, like: np.ndarray) -> tuple[np.ndarray, float]:
+    n, d = fit_plane(p, w)
+    return (n, d) if float(n @ like) >= 0 else (-n, -d)
+
+
+def gauge_figures(g: Any, points: np.ndarray, frame: np.ndarray | None, min_frame_points: int = 20
+                  ) -> Figures:
+    """The gauge block's mean height with the report's faces held fixed.
+
+    ``g`` is the report's :class:`~crossline.report.metrics.GaugeResult` on ``points``;
+    ``frame`` the frame of each point where heights are referenced per frame.
+    """
+    top, plate = np.flatnonzero(g.top_mask), np.flatnonzero(g.plate_mask)
+    per_frame = g.reference == "frame" and frame is not None
+    if per_frame:
+        fr = np.asarray(frame)
+        ufr, pinv = np.unique(fr[plate], return_inverse=True)
+        tk = np.searchsorted(ufr, fr[top]).clip(0, max(len(ufr) - 1, 0))
+
+    def figures(P: np.ndarray, w: np.ndarray) -> dict[str, float]:
+        wp, wt = w[plate], w[top]
+        n, d = _weighted_plane(P[plate], wp, g.plate_normal)
+        h = P[top] @ n + d
+        if per_frame:
+            res = P[plate] @ n + d
+            cnt = np.bincount(pinv, weights=(wp > 0).astype(float), minlength=len(ufr))
+            off = np.bincount(pinv, weights=res * (wp > 0), minlength=len(ufr)) / np.maximum(cnt, 1)
+            ok = cnt[tk] >= min_frame_points
+            h, wt = h - off[tk], wt * ok
+        return {"mean_mm": float(np.average(h, weights=wt))}
+
+    return figures
+
+
+def plane_figures(r: Any, band_mm: float) -> Figures:
+    """The flat plate's flatness, RMS and share within the band (the report's plane fit)."""
+
+    def figures(P: np.ndarray, w: np.ndarray) -> dict[str, float]:
+        n, d = _weighted_plane(P, w, r.normal)
+        dist = (P @ n + d)[w > 0]
+        ww = w[w > 0]
+        lo, hi = _weighted_percentiles(dist, ww, (2.5, 97.5))
+        return {"flatness_mm": float(dist.max() - dist.min()), "flatness_95_mm": float(hi - lo),
+                "rms_mm": float(np.sqrt(np.average(dist**2, weights=ww))),
+                "share_within_band": float(np.average(np.abs(dist) <= band_mm, weights=ww))}
+
+    return figures
+
+
+def sphere_figures(s: Any) -> Figures:
+    """The ball's diameter and form error on the report's inliers (geometric fit, weighted)."""
+    inl = np.flatnonzero(s.inlier_mask)
+    x0 = np.r_[s.centre, s.radius]
+
+    def figures(P: np.ndarray, w: np.ndarray) -> dict[str, float]:
+        p, wi = P[inl], w[inl]
+        x = x0.copy()
+        # Gauss-Newton from the report's sphere: a draw moves it by microns, so a few steps
+        # reach the geometric least-squares sphere to far below them
+        for _ in range(GN_STEPS):
+            dv = p - x[:3]
+            dist = np.linalg.norm(dv, axis=1)
+            J = np.column_stack([-dv / dist[:, None], -np.ones(len(p))])
+            r = dist - x[3]
+            Jw = J * wi[:, None]
+            step = np.linalg.solve(Jw.T @ J, -(Jw.T @ r))
+            x += step
+            if np.max(np.abs(step)) < 1e-9:
+                break
+        keep = wi > 0
+        r = (np.linalg.norm(p - x[:3], axis=1) - x[3])[keep]
+        ww = wi[keep]
+        # the report's D95: the 95 % of the points closest to the sphere; p95: 2.5-97.5 %
+        a95 = _weighted_percentiles(np.abs(r), ww, (95.0,))[0]
+        r95 = r[np.abs(r) <= a95]
+        lo, hi = _weighted_percentiles(r, ww, (2.5, 97.5))
+        return {"diameter_mm": float(2 * x[3]), "form_error_mm": float(r.max() - r.min()),
+                "form_error_d95_mm": float(r95.max() - r95.min()),
+                "form_error_p95_mm": float(hi - lo)}
+
+    return figures
+
+
+def monte_carlo(
+    sp: ScanPoints, model: CalibrationModel, figures: Figures, *, draws: int = 200, seed: int = 0,
+) -> dict[str, Any]:
+    """Value, standard uncertainty, U (k = 2), 95 % interval and budget of each figure.
+
+    ``draws`` calibrations (and frame resamplings) for the combined distribution, and as many
+    again for each contributor alone (the budget). The value is the figure on the report's
+    points; ``u`` the standard deviation of the combined draws.
+    """
+    rng = np.random.default_rng(seed)
+    ones = np.ones(len(sp.points))
+    value = figures(sp.points, ones)
+
+    def run(parts: tuple[str, ...]) -> dict[str, np.ndarray]:
+        out: dict[str, list[float]] = {k: [] for k in value}
+        calib = [p for p in parts if p != "repeatability"]
+        for _ in range(draws):
+            P = sp.points
+            if calib:
+                cam, planes, X = draw_calibration(model, rng, tuple(calib))
+                P = moved_points(sp, cam, planes, X)
+            w = ones
+            if "repeatability" in parts:
+                w = np.bincount(rng.integers(0, sp.n_frames, sp.n_frames),
+                                minlength=sp.n_frames)[sp.frame_index].astype(float)
+            for k, v in figures(P, w).items():
+                out[k].append(v)
+        return {k: np.asarray(v) for k, v in out.items()}
+
+    total = run(CONTRIBUTORS)
+    alone = {c: run((c,)) for c in CONTRIBUTORS}
+    result: dict[str, Any] = {}
+    for k, v in value.items():
+        u = float(np.std(total[k], ddof=1))
+        parts = {c: float(np.std(alone[c][k], ddof=1)) for c in CONTRIBUTORS}
+        var = sum(x**2 for x in parts.values())
+        lo, hi = np.percentile(total[k], [2.5, 97.5])
+        result[k] = {
+            "value": v, "u": u, "U": COVERAGE_FACTOR * u, "k": COVERAGE_FACTOR,
+            "interval_95": [float(lo), float(hi)],
+            "mc_mean": float(np.mean(total[k])),
+            "budget": {c: {"u": x, "share": x**2 / var if var > 0 else 0.0} for c, x in parts.items()},
+            "dominant": max(parts, key=parts.get),
+        }
+    return result
