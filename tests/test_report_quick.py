@@ -89,6 +89,17 @@ def test_quick_report_every_section_and_same_bytes(quick_pipeline):
     assert {r["id"] for r in m["summary"]} >= {"gauge_mean_error_mm", "gauge_std_mm",
                                                "ab_height_difference_mm", "plane_within_share",
                                                "sphere_size_error_mm", "sphere_form_error_mm"}
+    # every calibration of a real run carries its covariance: U has all four contributors,
+    # and the gauge's true error lies within it (its U is some microns, its error less)
+    for name in ("gauge", "plate", "ball"):
+        unc = m["scans"][name]["uncertainty"]
+        assert "incomplete" not in unc, (name, unc.get("incomplete"))
+        for key, f in unc["figures"].items():
+            if key != "share_within_band":  # every plate point is within the band: u = 0
+                assert all(f["budget"][c]["u"] > 0 for c in f["budget"]), (name, key, f["budget"])
+    g = m["scans"]["gauge"]
+    row = next(r for r in m["summary"] if r["id"] == "gauge_mean_error_mm")
+    assert 0 < row["U"] < 0.003 and abs(g["truth"]["mean_error_mm"]) <= row["U"]
 
 
 def test_quick_report_pages_show_metrics(quick_pipeline):

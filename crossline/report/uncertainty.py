@@ -309,12 +309,15 @@ def monte_carlo(
                 out[k].append(v)
         return {k: np.asarray(v) for k, v in out.items()}
 
+    known = {"camera": model.camera_cov is not None, "laser_planes": bool(model.plane_cov),
+             "handeye": model.X_cov is not None, "repeatability": sp.n_frames > 1}
     total = run(CONTRIBUTORS)
-    alone = {c: run((c,)) for c in CONTRIBUTORS}
+    # a contributor without a covariance is not drawn: its u is 0, and the model says why
+    alone = {c: run((c,)) for c in CONTRIBUTORS if known[c]}
     result: dict[str, Any] = {}
     for k, v in value.items():
         u = float(np.std(total[k], ddof=1))
-        parts = {c: float(np.std(alone[c][k], ddof=1)) for c in CONTRIBUTORS}
+        parts = {c: float(np.std(alone[c][k], ddof=1)) if c in alone else 0.0 for c in CONTRIBUTORS}
         var = sum(x**2 for x in parts.values())
         lo, hi = np.percentile(total[k], [2.5, 97.5])
         result[k] = {

@@ -1,0 +1,243 @@
+"""Measurement uncertainty: the plane fit's covariance against the scatter of repeated fits, the
+Monte Carlo's draws against their covariances, and the Monte Carlo's u against first-order
+propagation (GUM's law of propagation) through the same re-triangulation."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from crossline.camera import Camera
+from crossline.geometry import fit_plane, matrix_to_rotvec, plane_covariance, plane_tilt_basis
+from crossline.io.capture import read_frames_table
+from crossline.report import metrics as mt
+from crossline.report import uncertainty as uc
+from tests.test_report_synthetic import make_capture
+
+N_TRIALS = 400
+
+
+def _plane_case(rng: np.random.Generator, clusters: int = 0, shared_mm: float = 0.0,
+                noise_mm: float = 0.004) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """Points of a laser-plane-like patch 150 mm in front of the camera: stripes (clusters)
+    across it, each stripe moved by its own shared error (a board pose's)."""
+    n = np.array([0.35, 0.1, -0.93])
+    n /= np.linalg.norm(n)
+    d = 140.0
+    E = plane_tilt_basis(n)
+    foot = -d * n
+    g = max(clusters, 1)
+    t = rng.uniform(-15, 15, size=(g, 60))
+    s = np.linspace(-12, 12, g)[:, None] + 0 * t
+    p = foot + t.reshape(-1, 1) * E[0] + s.reshape(-1, 1) * E[1]
+    lab = np.repeat(np.arange(g), 60)
+    off = rng.normal(scale=shared_mm, size=g)[lab] if shared_mm else 0.0
+    p = p + (off + rng.normal(scale=noise_mm, size=len(p)))[:, None] * n
+    return p, n, d, lab
+
+
+def _params(n_fit: np.ndarray, d_fit: float, n: np.ndarray, d: float) -> np.ndarray:
+    if n_fit @ n < 0:
+        n_fit, d_fit = -n_fit, -d_fit
+    E = plane_tilt_basis(n)
+    return np.array([(n_fit - n) @ E[0], (n_fit - n) @ E[1], d_fit - d])
+
+
+@pytest.mark.parametrize("clustered", [False, True], ids=["independent", "shared-by-pose"])
+def test_plane_covariance_predicts_the_scatter_of_repeated_fits(clustered: bool) -> None:
+    rng = np.random.default_rng(3)
+    est, pred, pred_iid = [], [], []
+    for _ in range(N_TRIALS):
+        p, n, d, lab = _plane_case(rng, clusters=8, shared_mm=0.01 if clustered else 0.0)
+        nf, df = fit_plane(p)
+        est.append(_params(nf, df, n, d))
+        pred.append(np.diag(plane_covariance(p, nf, df, clusters=lab)))
+        pred_iid.append(np.diag(plane_covariance(p, nf, df)))
+    emp = np.var(np.array(est), axis=0, ddof=1)
+    ratio = np.sqrt(np.mean(pred, axis=0) / emp)
+    iid_ratio = np.sqrt(np.mean(pred_iid, axis=0) / emp)
+    # 400 trials: the empirical sigma is known to about 4 %
+    if clustered:
+        # the sandwich from 8 clusters is itself a small-sample estimate: its mean within 25 %;
+        # the independent-error covariance alone would claim far too much
+        assert np.all(np.abs(ratio - 1) < 0.25), ratio
+        assert iid_ratio[2] < 0.5, iid_ratio
+    else:
+        assert np.all(np.abs(iid_ratio - 1) < 0.1), iid_ratio
+        # the larger of two estimates in every direction errs on the safe side, by little
+        assert np.all((ratio > 0.95) & (ratio < 1.3)), ratio
+
+
+def _model(rng: np.random.Generator) -> uc.CalibrationModel:
+    from crossline.laser import LaserPlane, LaserPlanes
+    from tests.test_report_synthetic import DIST_PAPER, K_PAPER, X_PAPER, laser_plane
+
+    def correlated(sigma: list[float]) -> np.ndarray:  # a random correlation, given sigmas
+        A = rng.normal(size=(len(sigma), len(sigma)))
+        C = A @ A.T + len(sigma) * np.eye(len(sigma))
+        s = 1 / np.sqrt(np.diag(C))
+        return np.outer(sigma, sigma) * (C * np.outer(s, s))
+
+    # about a bundle adjustment's: fractions of a pixel, distortion to a few 1e-4
+    cam_cov = correlated([0.4, 0.4, 0.3, 0.3, 2e-4, 1e-3, 2e-6, 2e-6, 4e-3])
+    planes = LaserPlanes(*(LaserPlane(*laser_plane(L)) for L in "AB"))
+    pcov = {L: (plane_tilt_basis(planes[L].normal), np.diag([2e-5, 1e-5, 4e-3]) ** 2) for L in "AB"}
+    X_cov = correlated([1e-4] * 3 + [0.01] * 3)
+    X = np.asarray(X_PAPER, dtype=np.float64)
+    X[:3, :3] = np.linalg.svd(X[:3, :3])[0] @ np.linalg.svd(X[:3, :3])[2]
+    return uc.CalibrationModel(Camera(np.array(K_PAPER), np.array(DIST_PAPER), (3072, 2048)),
+                               planes, X, cam_cov, pcov, X_cov)
+
+
+def test_drawn_calibrations_follow_their_covariances() -> None:
+    rng = np.random.default_rng(5)
+    m = _model(rng)
+    cam, pl, xs = [], [], []
+    for _ in range(3000):
+        c, p, X = uc.draw_calibration(m, rng)
+        cam.append([c.fx - m.camera.fx, c.fy - m.camera.fy, c.cx - m.camera.cx,
+                    c.cy - m.camera.cy, *(c.dist - m.camera.dist)])
+        pl.append(_params(p.A.normal, p.A.d, m.planes.A.normal, m.planes.A.d))
+        dX = np.linalg.inv(m.X) @ X
+        xs.append([*matrix_to_rotvec(dX[:3, :3]), *dX[:3, 3]])
+    for got, want in ((cam, m.camera_cov), (pl, m.plane_cov["A"][1]), (xs, m.X_cov)):
+        ratio = np.sqrt(np.diag(np.cov(np.array(got).T)) / np.diag(want))
+        assert np.all(np.abs(ratio - 1) < 0.08), ratio  # 3000 draws: sigma to about 1.3 %
+
+
+@pytest.fixture(scope="module")
+def synthetic(tmp_path_factory) -> tuple[Path, Path]:
+    root = tmp_path_factory.mktemp("unc")
+    make_capture(root / "raw", root / "interim", scans=("gauge", "ball"), frames=40, rays=200)
+    return root / "raw", root / "interim"
+
+
+def _scan(raw: Path, interim: Path, scan: str, model: uc.CalibrationModel) -> uc.ScanPoints:
+    df = pd.read_parquet(interim / "points" / f"{scan}.parquet")
+    ft = read_frames_table(raw / "scans" / scan / "frames.csv")
+    return uc.scan_points(df[["x", "y", "z"]].to_numpy(), df["laser"].to_numpy(str),
+                          df["frame"].to_numpy(), ft.frames, ft.T_base_tool, model)
+
+
+def test_unperturbed_calibration_gives_back_the_points(synthetic) -> None:
+    raw, interim = synthetic
+    model = _model(np.random.default_rng(1))
+    sp = _scan(raw, interim, "gauge", model)
+    P = uc.moved_points(sp, model.camera, model.planes, model.X)
+    assert np.array_equal(P, sp.points)
+    # a hand-eye translation moves each point by its frame's rotation of it, exactly
+    X = model.X.copy()
+    X[:3, 3] += [0.01, -0.02, 0.03]
+    moved = uc.moved_points(sp, model.camera, model.planes, X) - sp.points
+    want = np.einsum("nij,j->ni", sp.R_base_tool, [0.01, -0.02, 0.03])
+    assert np.allclose(moved, want, atol=1e-9)
+
+
+@pytest.mark.parametrize("scan", ["gauge", "ball"])
+def test_monte_carlo_u_agrees_with_first_order_propagation(synthetic, scan: str) -> None:
+    """For the camera alone, the figure is near-linear in the parameters over their small
+    covariance: the Monte Carlo's u must match sqrt(g^T C g), g by central differences of the
+    same re-triangulation and figure."""
+    raw, interim = synthetic
+    rng = np.random.default_rng(2)
+    model = _model(rng)
+    sp = _scan(raw, interim, scan, model)
+    P = sp.points
+    if scan == "gauge":
+        g = mt.measure_gauge_block(P, 20.0, frame=pd.read_parquet(
+            interim / "points" / f"{scan}.parquet")["frame"].to_numpy())
+        figures, key = uc.gauge_figures(g, P, pd.read_parquet(
+            interim / "points" / f"{scan}.parquet")["frame"].to_numpy()), "mean_mm"
+    else:
+        figures, key = uc.sphere_figures(mt.measure_sphere(P, 25.0)), "diameter_mm"
+    ones = np.ones(len(P))
+    base = figures(P, ones)[key]
+    assert base == pytest.approx((g.figures()["mean_mm"] if scan == "gauge" else
+                                  2 * mt.measure_sphere(P, 25.0).radius), abs=1e-9)
+    sig = np.sqrt(np.diag(model.camera_cov))
+    grad = np.zeros(9)
+    for j in range(9):
+        vals = []
+        for sign in (1, -1):
+            K, dist = model.camera.K.copy(), model.camera.dist.copy()
+            step = np.zeros(9)
+            step[j] = sign * sig[j]
+            K[0, 0] += step[0]
+            K[1, 1] += step[1]
+            K[0, 2] += step[2]
+            K[1, 2] += step[3]
+            dist = dist + step[4:]
+            Pk = uc.moved_points(sp, Camera(K, dist, model.camera.image_size), model.planes, model.X)
+            vals.append(figures(Pk, ones)[key])
+        grad[j] = (vals[0] - vals[1]) / (2 * sig[j])
+    u_lin = float(np.sqrt(grad @ model.camera_cov @ grad))
+    res = uc.monte_carlo(sp, model, figures, draws=400, seed=4)[key]
+    u_mc = res["budget"]["camera"]["u"]
+    assert u_lin > 0
+    # 400 draws: u known to 3.5 %; within 12 % (3.4 sigma) of the linear propagation
+    assert u_mc == pytest.approx(u_lin, rel=0.12)
+    assert res["value"] == pytest.approx(base)
+    assert res["U"] == pytest.approx(2 * res["u"])
+    parts = res["budget"]
+    assert sum(b["share"] for b in parts.values()) == pytest.approx(1.0)
+    # drawn independently, the contributors add in quadrature at least; the frames' bootstrap
+    # also changes how a calibration error averages over the frames, which can only add
+    quad = np.sqrt(sum(b["u"] ** 2 for b in parts.values()))
+    assert res["u"] > 0.9 * quad
+
+
+def test_report_gives_U_and_decision_where_the_calibration_has_covariances(synthetic,
+                                                                            tmp_path) -> None:
+    from crossline.report.accuracy import build_report
+    from crossline.report.pages import build_pages, fmt_row_value, page_texts
+
+    raw, interim = synthetic
+    model = _model(np.random.default_rng(1))
+    cal = interim / "calibration"
+    cam = json.loads((cal / "camera.json").read_text())
+    cam["uncertainty"] = {"covariance": model.camera_cov.tolist()}
+    out = tmp_path / "interim"
+    (out / "calibration").mkdir(parents=True)
+    (out / "points").symlink_to((interim / "points").resolve(), target_is_directory=True)
+    (out / "calibration" / "camera.json").write_text(json.dumps(cam))
+    las = json.loads((cal / "lasers.json").read_text())
+    for L in "AB":
+        E, C = model.plane_cov[L]
+        las[L]["covariance"] = {"tilt_basis": E.tolist(), "matrix": C.tolist()}
+    (out / "calibration" / "lasers.json").write_text(json.dumps(las))
+    he = json.loads((cal / "handeye.json").read_text())
+    he["methods"]["refined"]["uncertainty"] = {"covariance_X": model.X_cov.tolist()}
+    (out / "calibration" / "handeye.json").write_text(json.dumps(he))
+    data = build_report(raw, out, tmp_path / "processed",
+                        {"report": {"metrology": {"uncertainty_draws": 60}}})
+    m = data.metrics
+    unc = m["scans"]["gauge"]["uncertainty"]
+    assert unc["draws"] == 60 and "incomplete" not in unc
+    f = unc["figures"]["mean_mm"]
+    assert f["value"] == pytest.approx(m["scans"]["gauge"]["measurement"]["mean_mm"])
+    assert all(f["budget"][c]["u"] > 0 for c in uc.CONTRIBUTORS)
+    rows = {r["id"]: r for r in m["summary"]}
+    for rid in ("gauge_mean_error_mm", "sphere_size_error_mm", "sphere_form_error_mm"):
+        r = rows[rid]
+        assert r["U"] > 0 and r["k"] == 2
+        v = abs(r["value"])
+        want = ("conforms" if v + r["U"] <= r["tolerance"] else "does not conform"
+                if v - r["U"] > r["tolerance"] else "inconclusive (within U of the limit)")
+        assert r["decision"] == want
+    assert rows["gauge_mean_error_mm"]["U"] == pytest.approx(f["U"])
+    texts = [" ".join(page_texts(p)) for p in build_pages(m, data.plots)]
+    assert fmt_row_value(rows["gauge_mean_error_mm"]) in texts[0]
+    page = next(t for t in texts if "Measurement uncertainty" in t and "Decision rule" in t)
+    assert "ISO 14253-1" in page and rows["gauge_mean_error_mm"]["decision"] in page
+    # without covariances the contributors are named as missing, the frames still count
+    data = build_report(raw, interim, tmp_path / "processed2",
+                        {"report": {"metrology": {"uncertainty_draws": 30}}})
+    unc = data.metrics["scans"]["gauge"]["uncertainty"]
+    assert len(unc["incomplete"]) == 4  # camera, planes A and B, hand-eye
+    b = unc["figures"]["mean_mm"]["budget"]
+    assert b["camera"]["u"] == b["laser_planes"]["u"] == b["handeye"]["u"] == 0
+    assert b["repeatability"]["u"] > 0
