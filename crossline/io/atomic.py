@@ -8,10 +8,12 @@ leaves a half-written file that a later run would take for a finished one.
 from __future__ import annotations
 
 import contextlib
+import errno
 import glob
 import json
 import math
 import os
+import re
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -19,7 +21,9 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["atomic_path", "to_jsonable", "write_json", "write_parquet"]
+from crossline.errors import CrosslineError
+
+__all__ = ["WriteError", "atomic_path", "to_jsonable", "write_json", "write_parquet"]
 
 
 @contextlib.contextmanager
@@ -30,15 +34,44 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     # a run killed outright (power cut, kill -9) leaves its temporary file: clear it
     for stale in path.parent.glob(f".{glob.escape(path.name)}.*.tmp"):
         stale.unlink(missing_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:
+        raise WriteError(path, exc) from exc
     os.close(fd)
     tmp_path = Path(tmp)
     try:
         yield tmp_path
         os.chmod(tmp_path, 0o644)
         os.replace(tmp_path, path)
+    except OSError as exc:
+        # the artefact's own write (a full disk, a quota), not an input the block read
+        if exc.filename in (None, str(tmp_path), str(path)) or exc.errno in _DISK_ERRNOS:
+            raise WriteError(path, exc) from exc
+        raise
     finally:
         tmp_path.unlink(missing_ok=True)
+
+
+_DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS)
+
+
+class WriteError(CrosslineError, OSError):
+    """An artefact could not be written (full disk, quota, read-only): names the artefact."""
+
+    def __init__(self, path: Path, exc: OSError):
+        code = exc.errno
+        if code is None:  # pyarrow says "... Detail: [errno 28] No space left on device"
+            m = re.search(r"\[errno (\d+)\]", str(exc))
+            code = int(m.group(1)) if m else None
+        reason = os.strerror(code) if code else (exc.strerror or str(exc))
+        self.message = f"cannot write {path}: {reason}; nothing of it was kept"
+        super().__init__(self.message)
+        self.errno = code
+        self.filename = str(path)
+
+    def __str__(self) -> str:
+        return self.message
 
 
 def to_jsonable(obj: Any) -> Any:
