@@ -19,7 +19,7 @@ from crossline.errors import CrosslineError
 from crossline.io.atomic import write_json
 from crossline.jit import jit
 
-__all__ = ["Camera", "distort_normalized", "undistort_normalized"]
+__all__ = ["CAMERA_PARAMETERS", "Camera", "distort_normalized", "undistort_normalized"]
 
 
 def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
@@ -82,6 +82,10 @@ def _newton_undistort(xy_d, k1, k2, p1, p2, k3, tol, max_iter, out):  # pragma: 
         out[i, 1] = Y
 
 
+# the camera model's parameters, in the order of its covariance (camera.json uncertainty)
+CAMERA_PARAMETERS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+
+
 class CameraFileError(CrosslineError, ValueError):
     """camera.json cannot be read or holds no usable camera model (names the file)."""
 
@@ -125,6 +129,16 @@ class Camera:
     def cy(self) -> float:
         """Principal point v in pixels."""
         return float(self.K[1, 2])
+
+    def perturbed(self, delta: np.ndarray) -> Camera:
+        """The camera with ``delta`` (9,) added to its parameters, in CAMERA_PARAMETERS order."""
+        x = np.asarray(delta, dtype=np.float64).reshape(9)
+        K = self.K.copy()
+        K[0, 0] += x[0]
+        K[1, 1] += x[1]
+        K[0, 2] += x[2]
+        K[1, 2] += x[3]
+        return Camera(K, self.dist + x[4:], self.image_size)
 
     def normalized_to_pixels(self, xy_d: np.ndarray) -> np.ndarray:
         """Pixels (N, 2) from distorted normalised coordinates (N, 2)."""

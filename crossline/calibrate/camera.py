@@ -38,7 +38,7 @@ from crossline.board import Board
 from crossline.calibrate.bias import centroid_offsets
 from crossline.calibrate.detect import Detection, detect_board
 from crossline.calibrate.lm import levenberg_marquardt
-from crossline.camera import Camera
+from crossline.camera import CAMERA_PARAMETERS, Camera
 from crossline.errors import CalibrationError
 from crossline.geometry import make_transform, matrix_to_rotvec, rotvec_to_matrix
 
@@ -68,7 +68,7 @@ log = logging.getLogger(__name__)
 # a view is never an outlier below this RMS (px): exact or very clean data has tiny medians
 OUTLIER_FLOOR_PX = 0.02
 VIEW_SETS = ("camera", "all")
-PARAMETERS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+PARAMETERS = CAMERA_PARAMETERS
 DISTORTION = PARAMETERS[4:]
 # candidate distortion models, as the coefficients each holds at 0 (the first: all free): the
 # radial terms of highest order go first, as they need the widest field to be seen; the

@@ -38,7 +38,7 @@ import numpy as np
 from crossline.board import Board
 from crossline.calibrate.detect import detect_board, to_uint8
 from crossline.calibrate.pose import board_pose
-from crossline.camera import Camera
+from crossline.camera import CAMERA_PARAMETERS, Camera
 from crossline.errors import CalibrationError, CrosslineError
 from crossline.geometry import fit_plane, plane_covariance, plane_distance, plane_tilt_basis
 from crossline.laser import LASERS, LaserPlane, LaserPlanes
@@ -47,6 +47,7 @@ __all__ = [
     "PoseStripe",
     "albedo_gain",
     "board_plane_points",
+    "camera_jacobian",
     "edge_clearance",
     "group_sigma",
     "robust_plane",
@@ -75,6 +76,8 @@ class PoseStripe:
     n_centres: int  # centres found before the board-area filter
     albedo: dict | None = None  # the albedo gain's ratio and black level, None if not applied
     on_other: np.ndarray | None = None  # (M,) bool: the centre lies on the other albedo class
+    board_points: np.ndarray | None = None  # (K, 2) px: the board's detected points (its pose)
+    bias_correction: bool = True  # whether the pose corrected the circle-centre bias
 
 
 def board_plane_points(camera: Camera, T_cam_board: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -356,7 +359,8 @@ def stripe_points(
     iu = np.clip(np.round(centres[:, 0]).astype(int), 0, light.shape[1] - 1)
     iv = np.clip(np.round(centres[:, 1]).astype(int), 0, light.shape[0] - 1)
     on_other = (light if board.circles == "light" else ~light)[iv, iu]
-    return PoseStripe(pts, centres, T, pose.rms_px, axis, n_centres, albedo, on_other)
+    return PoseStripe(pts, centres, T, pose.rms_px, axis, n_centres, albedo, on_other,
+                      np.asarray(det.points, dtype=np.float64), bias_correction)
 
 
 def albedo_gain(
@@ -518,6 +522,41 @@ def robust_plane(
     return n, float(d), inl
 
 
+def camera_jacobian(
+    camera: Camera, board: Board, stripes: list[PoseStripe], inliers: np.ndarray,
+    weights: np.ndarray, normal: np.ndarray, d: float, steps: np.ndarray,
+) -> np.ndarray:
+    """How the fitted plane follows the camera: d(tilt e1, tilt e2, d) / d(fx fy cx cy k1 k2 p1
+    p2 k3), (3, 9), by central differences of ``steps`` (9,).
+
+    For each step every board pose is found again with the changed camera (PnP on the same
+    detected points), its stripe pixels are carried onto that board plane and the plane is
+    fitted again to the same inliers with the same weights. A camera error moves the planes
+    with it, so that near the boards triangulation partly undoes it: drawing the camera and
+    the planes independently would miss that.
+    """
+    from crossline.calibrate.pose import board_pose
+
+    E = plane_tilt_basis(normal)
+    J = np.zeros((3, 9))
+    for j in range(9):
+        vals = []
+        for sign in (1.0, -1.0):
+            x = np.zeros(9)
+            x[j] = sign * steps[j]
+            cam = camera.perturbed(x)
+            pts = np.concatenate([
+                board_plane_points(cam, board_pose(cam, board, st.board_points,
+                                                   bias_correction=st.bias_correction).T_cam_board,
+                                   st.uv) for st in stripes])
+            n, dd = fit_plane(pts[inliers], weights)
+            if n @ normal < 0:
+                n, dd = -n, -dd
+            vals.append(np.array([(n - normal) @ E[0], (n - normal) @ E[1], dd - d]))
+        J[:, j] = (vals[0] - vals[1]) / (2 * steps[j])
+    return J
+
+
 def _read_pose_images(view, shape, channel: str | None):
     """(lasers-off image or None, laser image, detection image or None) of one pose.
 
@@ -638,15 +677,24 @@ def run_calibrate_lasers(
         sigma = group_sigma(plane_distance(pts, nrm, d), np.unique(noise, return_inverse=True)[1], inl)
         cov = plane_covariance(pts[inl], nrm, d, weights=1.0 / sigma[inl] ** 2,
                                clusters=pose_of[inl])
+        std = (camera.extra.get("uncertainty") or {}).get("std") or {}
+        steps = np.array([float(std.get(k) or 0.0) for k in CAMERA_PARAMETERS])
+        # a parameter fixed at 0 (std 0) still gets a finite step: its column is then unused
+        steps = np.where(steps > 0, steps, [0.1, 0.1, 0.1, 0.1, 1e-4, 1e-4, 1e-6, 1e-6, 1e-4])
+        J_cam = camera_jacobian(camera, board, [st for _, st in mine], inl, 1.0 / sigma[inl] ** 2,
+                                nrm, d, steps)
         planes[laser] = LaserPlane(nrm, d, {
             "rms_mm": float(np.sqrt(np.mean(r**2))),
             "covariance": {
                 "parameters": ["tilt_e1_rad", "tilt_e2_rad", "d_mm"],
                 "tilt_basis": plane_tilt_basis(nrm).tolist(),
                 "matrix": cov.tolist(),
+                "camera_parameters": list(CAMERA_PARAMETERS),
+                "camera_jacobian": J_cam.tolist(),
                 "note": "1 sigma: the weighted fit's own, or where larger the scatter between "
                         "poses (cluster-robust); n' ∝ n + a e1 + b e2, d' = d + δd. The camera "
-                        "calibration's error, common to every pose, is not in it",
+                        "calibration's error, common to every pose, is not in the matrix: "
+                        "camera_jacobian (3 x 9, per unit of each camera parameter) carries it",
             },
             "n_points": len(pts),
             "n_used": int(inl.sum()),

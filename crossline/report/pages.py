@@ -1292,8 +1292,9 @@ def page_uncertainty(m: dict[str, Any]) -> Figure | None:
     p.gap(0.1)
     p.text("What U covers, and what it does not", size=10, weight="bold")
     p.text("Covered: the calibration's own noise (as its fits estimate it) and the scan's "
-           "repeatability. Not covered: the planes' share of the camera's error (drawn "
-           "independently here), the camera's model error where distortion terms were fixed, "
+           "repeatability; a camera draw moves the laser planes with it, as they were fitted "
+           "through it. Not covered: hand-eye's share of the camera's error (drawn "
+           "independently), the camera's model error where distortion terms were fixed, "
            "the arm's systematic error beyond what hand-eye absorbed, biases of the stripe "
            "centres with the angle of incidence (see the sphere's size by incidence), the "
            "artefact's own calibration and temperature. How often the true value lies within "

@@ -16,11 +16,13 @@ Each draw re-triangulates the scan's own stripe centres: every point of the repo
 carried back to its camera frame and pixel with the calibration it was made with, then forward
 with the drawn calibration, and its move is added to it (so pose refinement and outlier removal
 stay as the report had them). The figure is measured again with the report's own definition and
-segmentation (the points the report used for each face, the ball's inliers). The camera, the
-planes and ``X`` are drawn independently: the planes' fit shares the camera's error, which this
-neglects. Not covered: the camera's model error where distortion terms were fixed, the arm's
-systematic (volumetric) error beyond what hand-eye absorbed, the nominal artefact's own
-calibration, and temperature.
+segmentation (the points the report used for each face, the ball's inliers). A camera draw
+moves the laser planes with it (each plane's camera Jacobian: the boards' poses and the stripe
+points found again with that camera), since the planes were fitted through the camera; the
+planes' own draw adds their fit's noise, and ``X`` is drawn on its own (its share of the
+camera's error is neglected). Not covered: the camera's model error where distortion terms
+were fixed, the arm's systematic (volumetric) error beyond what hand-eye absorbed, the nominal
+artefact's own calibration, and temperature.
 """
 
 from __future__ import annotations
@@ -50,7 +52,6 @@ __all__ = [
 ]
 
 CONTRIBUTORS = ("camera", "laser_planes", "handeye", "repeatability")
-CAMERA_PARAMETERS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 COVERAGE_FACTOR = 2.0
 GN_STEPS = 6
 
@@ -66,6 +67,7 @@ class CalibrationModel:
     plane_cov: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # basis, cov
     X_cov: np.ndarray | None = None  # (6, 6) over (ω, t), rad and mm
     missing: tuple[str, ...] = ()  # what has no covariance, in words
+    plane_camera: dict[str, np.ndarray] = field(default_factory=dict)  # (3, 9) d plane / d camera
 
 
 def calibration_model(camera: dict, lasers: dict, handeye: dict) -> CalibrationModel:
@@ -79,7 +81,7 @@ def calibration_model(camera: dict, lasers: dict, handeye: dict) -> CalibrationM
     if cam_cov is None or cam_cov.shape != (9, 9):
         cam_cov = None
         missing.append("camera.json has no 9 x 9 uncertainty.covariance")
-    plane_cov = {}
+    plane_cov, plane_camera = {}, {}
     for name in planes.names:
         c = lasers[name].get("covariance") or {}
         try:
@@ -87,13 +89,20 @@ def calibration_model(camera: dict, lasers: dict, handeye: dict) -> CalibrationM
                                np.asarray(c["matrix"], dtype=np.float64).reshape(3, 3))
         except (KeyError, ValueError, TypeError):
             missing.append(f"lasers.json has no covariance of laser {name}'s plane")
+            continue
+        try:
+            plane_camera[name] = np.asarray(c["camera_jacobian"], dtype=np.float64).reshape(3, 9)
+        except (KeyError, ValueError, TypeError):
+            missing.append(f"lasers.json has no camera_jacobian of laser {name}'s plane (the "
+                           "camera's error is drawn as if the planes did not share it)")
     xc = (((handeye.get("methods") or {}).get("refined") or {}).get("uncertainty") or {}).get(
         "covariance_X")
     X_cov = None if xc is None else np.asarray(xc, dtype=np.float64)
     if X_cov is None or X_cov.shape != (6, 6):
         X_cov = None
         missing.append("handeye.json has no covariance of the refined X")
-    return CalibrationModel(cam, planes, X, cam_cov, plane_cov, X_cov, tuple(missing))
+    return CalibrationModel(cam, planes, X, cam_cov, plane_cov, X_cov, tuple(missing),
+                            plane_camera)
 
 
 def _gaussian(cov: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -104,24 +113,28 @@ def _gaussian(cov: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 def draw_calibration(
     model: CalibrationModel, rng: np.random.Generator, parts: tuple[str, ...] = CONTRIBUTORS
 ) -> tuple[Camera, LaserPlanes, np.ndarray]:
-    """One calibration drawn from the model's covariances, for the ``parts`` named (others as is)."""
+    """One calibration drawn from the model's covariances, for the ``parts`` named (others as is).
+
+    A drawn camera also moves each plane by the plane's camera Jacobian (the planes were fitted
+    through that camera); the planes' own draw adds their fit's noise.
+    """
     cam, planes, X = model.camera, model.planes, model.X
+    dc = None
     if "camera" in parts and model.camera_cov is not None:
-        x = dict(zip(CAMERA_PARAMETERS, _gaussian(model.camera_cov, rng), strict=True))
-        K = cam.K.copy()
-        K[0, 0] += x["fx"]
-        K[1, 1] += x["fy"]
-        K[0, 2] += x["cx"]
-        K[1, 2] += x["cy"]
-        dist = cam.dist + np.array([x["k1"], x["k2"], x["p1"], x["p2"], x["k3"]])
-        cam = Camera(K, dist, cam.image_size)
-    if "laser_planes" in parts and model.plane_cov:
+        dc = _gaussian(model.camera_cov, rng)
+        cam = cam.perturbed(dc)
+    own = "laser_planes" in parts and model.plane_cov
+    if own or (dc is not None and model.plane_camera):
         drawn = {}
         for name in planes.names:
             pl = planes[name]
             if name in model.plane_cov:
                 E, C = model.plane_cov[name]
-                a, b, dd = _gaussian(C, rng)
+                delta = _gaussian(C, rng) if own else np.zeros(3)
+                if dc is not None and name in model.plane_camera:
+                    # the planes were fitted through this camera: its error moves them too
+                    delta = delta + model.plane_camera[name] @ dc
+                a, b, dd = delta
                 n = pl.normal + a * E[0] + b * E[1]
                 s = np.linalg.norm(n)
                 # d is the offset along the drawn normal, so scale with it (|n| is restored)
