@@ -4,7 +4,7 @@
 PYTHON ?= python3
 SUDO := $(shell [ "$$(id -u)" = "0" ] || echo sudo)
 
-.PHONY: system install install-test demo test e2e lint bench clean
+.PHONY: system install install-test demo test e2e e2e-workflow lint bench clean
 
 system:  ## Open3D 0.20 needs the system library libusb-1.0
 	@ldconfig -p | grep -q 'libusb-1.0.so.0' || \
@@ -21,7 +21,10 @@ demo: install  ## renders data/raw/demo if missing, then builds reports/demo/acc
 	snakemake --cores 2
 
 test: install-test
-	$(PYTHON) -m pytest -n 2 --durations=15 -m "not e2e"
+	$(PYTHON) -m pytest -n 2 --dist loadgroup --durations=15 -m "not e2e"
+
+e2e-workflow: install-test  ## after the suite in CI: determinism, chunks, interruptions (whole runs)
+	$(PYTHON) -m pytest -n 2 --durations=10 -m e2e tests/test_workflow.py
 
 e2e: install-test  ## slower end-to-end check: three random rigs through the workflow
 	$(PYTHON) -m pytest -m e2e tests/e2e  # one process: the workflow inside uses both cores

@@ -41,6 +41,8 @@ AREAS: dict[str, tuple[str, str]] = {
     "refine_bias": ("Pose refinement: bias", "python benchmarks/bench_refine_bias.py"),
     "render": ("Rendering", "python benchmarks/bench_render.py"),
     "report": ("Report", "python benchmarks/bench_report.py"),
+    "uncertainty": ("Coverage of the reports' U over seeded captures",
+                    "python benchmarks/bench_uncertainty.py"),
 }
 
 

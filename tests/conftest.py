@@ -82,3 +82,16 @@ def capture_copy(quick_capture: Path, tmp_path: Path) -> Path:
     dst = tmp_path / "capture"
     shutil.copytree(quick_capture, dst)
     return dst
+
+
+# Module fixtures that take a minute or more to build: every test using one runs on the same
+# pytest-xdist worker (`make test` runs with --dist loadgroup), so that each is built once
+# rather than once on each worker that draws one of its tests.
+SHARED_FIXTURES = ("done_workdir", "partial_workdir", "quick_pipeline", "calibrated")
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    for item in items:
+        name = next((n for n in SHARED_FIXTURES if n in getattr(item, "fixturenames", ())), None)
+        if name is not None:
+            item.add_marker(pytest.mark.xdist_group(name))

@@ -205,6 +205,7 @@ def test_editing_a_module_reruns_its_stages(done_workdir: Path, tmp_path: Path) 
     assert planned_jobs(wd3) == {"calibration_certificate": 1}
 
 
+@pytest.mark.e2e  # after the suite (make e2e-workflow): a whole second run
 def test_deterministic_across_runs_and_cores(done_workdir: Path, tmp_path: Path) -> None:
     first = outputs(done_workdir)
     wd = make_workdir(tmp_path / "again", {"q": (done_workdir / "data/raw/q").resolve()})
@@ -215,16 +216,21 @@ def test_deterministic_across_runs_and_cores(done_workdir: Path, tmp_path: Path)
     assert differ == [], f"artefacts differ between runs: {differ}"
 
 
+@pytest.mark.e2e  # after the suite (make e2e-workflow)
 def test_chunked_extraction_gives_identical_points(done_workdir: Path, tmp_path: Path) -> None:
-    wd = make_workdir(tmp_path / "chunks", {"q": (done_workdir / "data/raw/q").resolve()},
-                      stripes__chunks=3)
+    wd = tmp_path / "chunks"  # the calibrations are kept: the chunks change extraction only
+    shutil.copytree(done_workdir, wd, symlinks=True)
+    set_config(wd, "stripes", "chunks", 3)
     scans = sorted(json.loads((done_workdir / "data/interim/q/check.json").read_text())["scans"])
     targets = [f"data/interim/q/points/{s}.parquet" for s in scans]
     snakemake(wd, *targets)
+    for s in scans:  # the copies' points were made again, from three chunks each
+        assert (wd / f"logs/q/extract_stripes/{s}.part2-of-3.log").is_file(), s
     for t in targets:
         assert (wd / t).read_bytes() == (done_workdir / t).read_bytes(), t
 
 
+@pytest.mark.e2e  # after the suite (make e2e-workflow): a whole second run
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGKILL], ids=["ctrl-c", "kill-9"])
 def test_interrupted_run_completes_identically(done_workdir: Path, tmp_path: Path, sig) -> None:
     wd = make_workdir(tmp_path / "kill", {"q": (done_workdir / "data/raw/q").resolve()})
