@@ -95,6 +95,15 @@ def meets(name: str, value: float) -> bool | None:
     return abs(value) <= target
 
 
+def parse_seeds(text: str) -> list[int]:
+    """Seeds from ``0-19`` or ``3,5,8`` (ranges inclusive)."""
+    seeds: list[int] = []
+    for part in text.split(","):
+        lo, _, hi = part.partition("-")
+        seeds += list(range(int(lo), int(hi or lo) + 1))
+    return seeds
+
+
 def render(seeds: list[int], quick: bool, preset: str = "random-small", *, cache: Path = CACHE,
            scans: list[str] | None = None) -> dict[str, Path]:
     """Render (or reuse) one capture per seed (``scans``: a subset of the preset's); returns
@@ -156,10 +165,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--full", action="store_true", help="full captures instead of --quick ones")
     ap.add_argument("--cores", type=int, default=2)
     a = ap.parse_args(argv)
-    seeds: list[int] = []
-    for part in a.seeds.split(","):
-        lo, _, hi = part.partition("-")
-        seeds += list(range(int(lo), int(hi or lo) + 1))
+    seeds = parse_seeds(a.seeds)
     caps = render(seeds, quick=not a.full, preset=a.preset)
     wd, wall = run_workflow(caps, a.cores)
     rows: dict[str, dict[str, Any]] = {}

@@ -29,7 +29,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from bench_rigs import render, run_workflow  # noqa: E402
+from bench_rigs import parse_seeds, render, run_workflow  # noqa: E402
 
 CACHE = HERE / ".cache" / "uncertainty"
 RESULTS = HERE / "results"
@@ -71,10 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--preset", default="paper")
     ap.add_argument("--cores", type=int, default=2)
     a = ap.parse_args(argv)
-    seeds: list[int] = []
-    for part in a.seeds.split(","):
-        lo, _, hi = part.partition("-")
-        seeds += list(range(int(lo), int(hi or lo) + 1))
+    seeds = parse_seeds(a.seeds)
     caps = render(seeds, quick=True, preset=a.preset, cache=CACHE, scans=["gauge", "plate", "ball"])
     wd, wall = run_workflow(caps, a.cores, cache=CACHE)
     rows = {}
