@@ -90,6 +90,7 @@ def capture_copy(quick_capture: Path, tmp_path: Path) -> Path:
 SHARED_FIXTURES = ("done_workdir", "partial_workdir", "quick_pipeline", "calibrated")
 
 
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist's own hook reads the groups
 def pytest_collection_modifyitems(config, items) -> None:
     for item in items:
         name = next((n for n in SHARED_FIXTURES if n in getattr(item, "fixturenames", ())), None)
