@@ -12,6 +12,7 @@ diameter. A plate's flatness and a ball's form error are 0 in truth and their me
 are noise statistics, so no interval around them can cover 0 in the GUM sense.
 
 Usage: python benchmarks/bench_uncertainty.py [--seeds 0-19] [--preset paper] [--cores 2]
+       [--score-only]  (the last run's reports scored again)
 Writes benchmarks/results/uncertainty.txt and uncertainty.json.
 """
 
@@ -61,7 +62,8 @@ def score(metrics: dict[str, Any]) -> dict[str, dict[str, float]]:
                          "covered": math.nan, "dominant": None}
             continue
         out[name] = {"error_um": 1e3 * float(err), "u_um": 1e3 * f["u"], "U_um": 1e3 * f["U"],
-                     "covered": float(abs(err) <= f["U"]), "dominant": f["dominant"]}
+                     "covered": float(abs(err) <= f["U"]), "dominant": f["dominant"],
+                     "budget_um": {c: 1e3 * b["u"] for c, b in f["budget"].items()}}
     return out
 
 
@@ -70,10 +72,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", default="0-19", help="seeds, e.g. 0-19 or 3,5,8")
     ap.add_argument("--preset", default="paper")
     ap.add_argument("--cores", type=int, default=2)
+    ap.add_argument("--score-only", action="store_true",
+                    help="score the reports of the last run again, without rendering or running")
     a = ap.parse_args(argv)
     seeds = parse_seeds(a.seeds)
-    caps = render(seeds, quick=True, preset=a.preset, cache=CACHE, scans=["gauge", "plate", "ball"])
-    wd, wall = run_workflow(caps, a.cores, cache=CACHE)
+    if a.score_only:
+        caps = {f"{a.preset}-{s}": CACHE / "captures" / f"{a.preset}-{s}" for s in seeds}
+        wd = CACHE / "work"
+        wall = json.loads((RESULTS / "uncertainty.json").read_text())["wall_s"]
+    else:
+        caps = render(seeds, quick=True, preset=a.preset, cache=CACHE,
+                      scans=["gauge", "plate", "ball"])
+        wd, wall = run_workflow(caps, a.cores, cache=CACHE)
     rows = {}
     for name in caps:
         mpath = wd / "reports" / name / "metrics.json"
@@ -102,12 +112,16 @@ def main(argv: list[str] | None = None) -> int:
         summary[k] = {"n": len(got), "coverage": float(np.mean([g["covered"] for g in got])),
                       "z_mean": float(z.mean()) if z.size else math.nan,
                       "z_std": float(z.std(ddof=1)) if z.size > 1 else math.nan,
-                      "median_U_um": float(np.median([g["U_um"] for g in got]))}
+                      "median_U_um": float(np.median([g["U_um"] for g in got])),
+                      "median_budget_um": {c: float(np.median([g["budget_um"][c] for g in got]))
+                                           for c in got[0]["budget_um"]}}
         s = summary[k]
         ok = 0.90 <= s["coverage"] <= 0.99
         lines.append(f"{k}: coverage {100 * s['coverage']:.0f} % of {s['n']} (target 90-99 %: "
                      f"{'met' if ok else 'NOT met'}), z = error/u: mean {s['z_mean']:+.2f}, std "
-                     f"{s['z_std']:.2f} (1 for an honest u), median U {s['median_U_um']:.2f} µm")
+                     f"{s['z_std']:.2f} (1 for an honest u), median U {s['median_U_um']:.2f} µm; "
+                     "median u by contributor (µm): " + ", ".join(
+                         f"{c} {v:.2f}" for c, v in s["median_budget_um"].items()))
     text = "\n".join(lines)
     print(text)
     RESULTS.mkdir(exist_ok=True)

@@ -535,8 +535,6 @@ def camera_jacobian(
     with it, so that near the boards triangulation partly undoes it: drawing the camera and
     the planes independently would miss that.
     """
-    from crossline.calibrate.pose import board_pose
-
     E = plane_tilt_basis(normal)
     J = np.zeros((3, 9))
     for j in range(9):
@@ -651,7 +649,8 @@ def run_calibrate_lasers(
         pts = np.concatenate([s.points for _, s in mine])
         pose_of = np.concatenate([np.full(len(s.points), i) for i, (_, s) in enumerate(mine)])
         other = np.concatenate([s.on_other for _, s in mine])
-        nrm, d, inl = robust_plane(pts, trim=trim, groups=pose_of, noise_groups=2 * pose_of + other)
+        noise = 2 * pose_of + other  # pose x albedo class: the groups that share a noise level
+        nrm, d, inl = robust_plane(pts, trim=trim, groups=pose_of, noise_groups=noise)
         k = 0
         poses = []
         for v, s in mine:
@@ -673,8 +672,7 @@ def run_calibrate_lasers(
             })
             k += m
         r = plane_distance(pts[inl], nrm, d)
-        noise = 2 * pose_of + other
-        sigma = group_sigma(plane_distance(pts, nrm, d), np.unique(noise, return_inverse=True)[1], inl)
+        sigma = group_sigma(plane_distance(pts, nrm, d), noise, inl)
         cov = plane_covariance(pts[inl], nrm, d, weights=1.0 / sigma[inl] ** 2,
                                clusters=pose_of[inl])
         std = (camera.extra.get("uncertainty") or {}).get("std") or {}

@@ -295,9 +295,9 @@ def _check(
 
 
 # the Monte Carlo figure whose uncertainty a summary row's value has
+# (sphere_form_error_mm: the configured form statistic's)
 ROW_FIGURES = {"gauge_mean_error_mm": "mean_mm", "plane_within_share": "share_within_band",
                "plane_flatness_95_mm": "flatness_95_mm", "sphere_size_error_mm": "diameter_mm",
-               "sphere_form_error_mm": None,  # the configured form statistic's
                "sphere_form_error_d95_mm": "form_error_d95_mm"}
 
 
@@ -308,7 +308,7 @@ def _with_uncertainty(row: dict, unc: dict | None, form_key: str) -> None:
     where it is outside by more than U; in between the result is inconclusive (the PASS/FAIL
     status stays the plain comparison of the value).
     """
-    key = ROW_FIGURES.get(row["id"], "") or (form_key if row["id"] in ROW_FIGURES else "")
+    key = form_key if row["id"] == "sphere_form_error_mm" else ROW_FIGURES.get(row["id"])
     fig = ((unc or {}).get("figures") or {}).get(key) if key else None
     if fig is None or row["value"] is None:
         return
@@ -408,8 +408,7 @@ def _uncertainty(sd: ScanData, figures: Any, model: Any, met: dict, root: Path) 
     out = {"figures": uc.monte_carlo(sp, model, figures, draws=draws, seed=int(met["seed"])),
            "draws": draws, "frames": sp.n_frames, "points": len(sp.points),
            "contributors": list(uc.CONTRIBUTORS), "coverage_factor": uc.COVERAGE_FACTOR,
-           "method": "GUM Supplement 1 Monte Carlo; " + " ".join(
-               (uc.__doc__ or "").split("What is drawn, and what is not:")[0].split())}
+           "method": uc.METHOD}
     if model.missing:
         out["incomplete"] = list(model.missing)
     return out
