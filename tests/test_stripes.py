@@ -640,3 +640,64 @@ def test_twelve_bit_data_in_sixteen_bit_frames_and_exposure(tmp_path):
     img = cv2.imread(str(tmp_path / "c12" / "scans" / "plate" / "frames" / "000000.png"),
                      cv2.IMREAD_UNCHANGED)
     assert img.max() < 0.15 * 65535
+
+
+def room_lit_frame(seed=3, noise=12.0):
+    """A 16-bit frame: a stripe across a dark table and across a broad face lit by the room,
+    brighter than the stripe's threshold, and dimmer on the table than on the face (a light
+    block on a dark table): the stripe's true centre row per column, and the face's columns."""
+    truth = 60.0 + 0.15 * np.arange(W) + 0.3 * np.sin(np.arange(W) / 9.0)
+    rows = np.arange(H, dtype=float)[:, None]
+    face = (np.arange(W) >= 80) & (np.arange(W) < 160)
+    peak = np.where(face, 9000.0, 2500.0)  # the sheet is brighter on the light face
+    lo, hi = rows - 0.5 - truth[None, :], rows + 0.5 - truth[None, :]
+    img = 600.0 + peak[None, :] * (_cdf(hi, 2.0, 2.0) - _cdf(lo, 2.0, 2.0)) / (2.0 * np.sqrt(2 * np.pi))
+    img[20:110, face] += 3000.0  # the room light on the face: 90 rows, wider than max_width
+    img = img + np.random.default_rng(seed).normal(0.0, noise, img.shape)
+    return np.clip(np.round(img), 0, 65535).astype(np.uint16), truth, face
+
+
+def test_noise_is_the_sensor_s_not_the_scene_s_contrast():
+    """The frame's noise comes from neighbouring pixels: a light face on a dark table is scene,
+    not noise, and would otherwise lift the threshold above a dim stripe (random rig 1's plate)."""
+    from crossline.scan.stripes import frame_levels
+
+    img, _, _ = room_lit_frame(noise=12.0)
+    lv = frame_levels(np.ascontiguousarray(img.T), 0.10, 65535.0)
+    assert lv["noise"] == pytest.approx(12.0, rel=0.15)
+    # the spread of the sample's values, what it was before, is the face's contrast
+    assert np.std(img[::5, ::5]) > 50 * 12.0
+
+
+@pytest.mark.parametrize("extractor", ["gaussian", "grey_centre", "steger"])
+def test_stripe_across_a_room_lit_face_is_found_on_the_frame_s_own_pixels(extractor):
+    """A surface lit by the room above the threshold swallows the stripe in one wide run; the
+    runs are found again in the frame less its local background, the centres fitted on the
+    frame itself: on the face as on the table, and as the same stripe without the room light."""
+    from crossline.scan.stripes import extract
+
+    img, truth, face = room_lit_frame()
+    c = extract(img, extractor, threshold=0.10, data_max=65535.0)
+    single = c["flags"] == 0
+    u = c["u"][single].astype(int)
+    on_face = face[u]
+    # every column, but Steger's within its smoothing (3 sigma) of the face's sides, where the
+    # room light steps across the columns
+    step = np.convolve(np.abs(np.diff(face.astype(int), prepend=face[0])), np.ones(13), "same") > 0
+    inner, table = face & ~step, ~face & ~step
+    assert np.isin(np.flatnonzero(inner), u).all() and (~on_face).sum() >= 0.95 * (~face).sum()
+    if extractor != "steger":
+        assert on_face.sum() == face.sum()
+    err = c["v"][single] - truth[u]
+    tol = {"gaussian": 0.05, "grey_centre": 0.08, "steger": 0.08}[extractor]
+    assert np.sqrt(np.mean(err[inner[u]] ** 2)) < tol
+    assert np.sqrt(np.mean(err[table[u]] ** 2)) < tol
+    # the same frame without the room light: the same centres where the stripe is on the face
+    dark = img.astype(np.int64)
+    dark[20:110, face] -= 3000
+    d = extract(np.clip(dark, 0, 65535).astype(np.uint16), extractor, threshold=0.10, data_max=65535.0)
+    sel = inner[u]
+    both, ic, idd = np.intersect1d(c["u"][single][sel], d["u"][d["flags"] == 0], return_indices=True)
+    assert both.size == inner.sum()
+    dv = c["v"][single][sel][ic] - d["v"][d["flags"] == 0][idd]
+    assert np.abs(dv).max() < 0.02 if extractor != "steger" else np.abs(dv).max() < 0.05

@@ -171,25 +171,29 @@ def frame_levels(imT: np.ndarray, threshold: float, data_max: float | None = Non
     """The intensity levels of one frame (as (width, height)) that set its stripe threshold.
 
     ``background`` is the median of a sparse sample (the stripes cover a few per cent of a
-    frame), ``noise`` the RMS deviation about it of the sample's pixels within 5 robust sigmas
+    frame). ``noise`` is the sensor's: from differences of vertically adjacent pixels of the
+    sample's columns, which a scene's own contrast (a light part on a dark table, a surface lit
+    by the room) does not reach, the RMS of those within 5 robust sigmas over sqrt(2)
     (robust where the data are quantised to a fraction of a count; at least the quantisation's
-    ``sqrt(1/12)``), ``peak`` the ``PEAK_QUANTILE`` quantile of the brightest pixel of the
+    ``sqrt(1/12)``). ``peak`` is the ``PEAK_QUANTILE`` quantile of the brightest pixel of the
     columns whose brightest pixel stands ``NOISE_K`` noise sigmas above the background (the
     columns that hold a stripe). The threshold ``level`` is ``background + threshold (peak -
     background)``, never below ``background + NOISE_K noise``; a frame without stripe columns
     has ``level = inf``. ``data_max`` (default: the frame's own maximum rounded up to a whole
     number of bits) is the saturation level.
     """
-    # by the histogram of the sample: integer data, and a sort of it would cost a frame's fit
-    hist = np.bincount(np.ascontiguousarray(imT[::LEVEL_STEP, ::LEVEL_STEP]).ravel())
-    vals = np.arange(hist.size, dtype=np.float64)
+    # by histograms of the sample: integer data, and a sort of it would cost a frame's fit
+    sample = imT[::LEVEL_STEP]
+    hist = np.bincount(np.ascontiguousarray(sample[:, ::LEVEL_STEP]).ravel())
     half = 0.5 * hist.sum()
     bg = float(np.searchsorted(np.cumsum(hist), half))
-    d = np.abs(vals - bg)
-    o = np.argsort(d, kind="stable")
-    mad = 1.4826 * float(d[o][np.searchsorted(np.cumsum(hist[o]), half)])
-    near = d <= 5.0 * max(mad, 1.0)
-    noise = float(np.sqrt((hist[near] * d[near] ** 2).sum() / max(hist[near].sum(), 1)))
+    a = sample[:, 0:-1:LEVEL_STEP]
+    d = np.abs(a.astype(np.int32) - sample[:, 1::LEVEL_STEP][:, : a.shape[1]]).ravel()
+    dh = np.bincount(d)
+    dv = np.arange(dh.size, dtype=np.float64)
+    mad = 1.4826 * float(np.searchsorted(np.cumsum(dh), 0.5 * dh.sum()))
+    near = dv <= 5.0 * max(mad, 1.0)
+    noise = float(np.sqrt((dh[near] * dv[near] ** 2).sum() / max(dh[near].sum(), 1) / 2.0))
     noise = max(noise, float(np.sqrt(1.0 / 12.0)))
     cm = imT.max(axis=1)
     top = float(cm.max()) if cm.size else 0.0
@@ -311,6 +315,39 @@ def _run_peaks(flat: np.ndarray, H: int, col: np.ndarray, r0: np.ndarray, r1: np
 
 
 # ----------------------------------------------------------------------------- grey centre
+
+
+def _candidate_runs(src: np.ndarray, thr: float, min_width: float, nb: bool = True) -> tuple[np.ndarray, ...]:
+    """The runs (col, r0, r1) above ``thr`` of an image as (width, height), at least ``min_width`` long."""
+    if nb:
+        return _runs_nb(np.flatnonzero(src > _int_threshold(thr, src.dtype)), src.shape[1], float(min_width))
+    return _runs(src, thr, min_width)
+
+
+def _merged(src: np.ndarray, col: np.ndarray, r0: np.ndarray, r1: np.ndarray, width: np.ndarray,
+            width_n: np.ndarray, thr: float, max_width: float, clean: np.ndarray | None = None) -> np.ndarray:
+    """Runs too wide for one stripe (``MERGED``): wider than ``max_width``, or across the stripe
+    (``width_n``) wider than ``MERGE_FACTOR`` times the frame's typical single stripe.
+
+    A run's width above a threshold grows with its height over it, as ``2 sigma sqrt(2 ln(A /
+    t))`` for a Gaussian profile of height ``A`` over a threshold ``t`` above the local
+    background: a bright stripe on a light face is wider above a frame's threshold than the
+    same sheet on a dark plate. Widths are compared after dividing that growth out (``A / t``
+    at least 2), the background being the darker of the pixels ``BG_PIXELS`` beyond each end.
+    ``src`` is the image (as (width, height)) the runs were found in, ``clean`` marks the runs
+    the typical width is taken from (default: all).
+    """
+    H = src.shape[1]
+    flat = src.reshape(-1)
+    peak = _run_peaks(flat, H, col, r0, r1)
+    base = col * H
+    bg = np.minimum(flat[base + np.maximum(r0 - BG_PIXELS, 0)],
+                    flat[base + np.minimum(r1 + BG_PIXELS, H - 1)]).astype(np.float64)
+    ratio = (peak - bg) / np.maximum(thr - bg, 1.0)
+    wn = width_n / np.sqrt(2.0 * np.log(np.maximum(ratio, 2.0)))
+    pick = wn[clean] if clean is not None and clean.any() else wn
+    typical = float(np.median(pick)) if pick.size else 0.0
+    return (width > max_width) | (wn > MERGE_FACTOR * typical)
 
 
 @_jit
@@ -505,6 +542,7 @@ def grey_centre(
     *,
     data_max: float | None = None,
     level: float | None = None,
+    detect: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Grey-centre (eq. 9) of every stripe segment of every column of a grey frame.
 
@@ -516,19 +554,19 @@ def grey_centre(
     ``backend``: ``numba`` (compiled kernels), ``numpy`` (vectorised) or ``auto`` (numba if
     installed); both give the same centres. ``transposed``: ``img`` is the frame as
     (width, height), e.g. from ``read_frame(..., transposed=True)`` (same centres, no
-    transpose here). Returns a centre table (module doc) in frame-local pixels, sorted by
-    (u, v).
+    transpose here). ``detect``, an image of the same layout (the frame less its local
+    background, say), is where the runs above ``level`` are found instead of ``img``; the
+    profiles are always ``img``'s. Returns a centre table (module doc) in frame-local pixels,
+    sorted by (u, v).
     """
     full_scale(img.dtype)  # unsigned integers only
     imT = _columns(img, transposed)
-    thr, full = _level_and_max(imT, threshold, level, data_max)
+    src = imT if detect is None else _columns(detect, transposed)
+    thr, full = _level_and_max(src, threshold, level, data_max)
     W, H = imT.shape
     flat = imT.reshape(-1)
     nb = _use_numba(backend)
-    if nb:
-        col, r0, r1 = _runs_nb(np.flatnonzero(imT > _int_threshold(thr, imT.dtype)), H, float(min_width))
-    else:
-        col, r0, r1 = _runs(imT, thr, min_width)
+    col, r0, r1 = _candidate_runs(src, thr, min_width, nb)
     k = col.size
     if k == 0:
         return empty_centres()
@@ -545,9 +583,7 @@ def grey_centre(
     nx = -slope * ny
     width_n = width * ny
     # merged stripes: wider than max_width, or than MERGE_FACTOR x the typical stripe here
-    clean = (flags & (CLOSE | EDGE)) == 0
-    typical = np.median(width_n[clean]) if clean.any() else np.median(width_n)
-    flags[(width > max_width) | (width_n > MERGE_FACTOR * typical)] |= MERGED
+    flags[_merged(src, col, r0, r1, width, width_n, thr, max_width, (flags & (CLOSE | EDGE)) == 0)] |= MERGED
     out = {
         "u": u, "v": v, "strength": sw, "peak": peak, "width": width, "width_n": width_n,
         "nx": nx, "ny": ny, "ridge": np.full(k, np.nan), "flags": flags,
@@ -862,6 +898,7 @@ def gaussian(
     *,
     data_max: float | None = None,
     level: float | None = None,
+    detect: np.ndarray | None = None,
 ) -> dict[str, np.ndarray] | tuple[dict[str, np.ndarray], dict[str, float]]:
     """Weighted least-squares Gaussian profile of every stripe segment of every column.
 
@@ -884,14 +921,16 @@ def gaussian(
     Returns a centre table (module doc) in frame-local pixels, sorted by (u, v)
     (``strength``: the fitted profile's integral, ``width_n``: its FWHM across the stripe),
     and with ``return_info`` also ``{"noise_dn": sigma_n, "relative_noise": r}``.
-    ``transposed``: ``img`` is the frame as (width, height), as for :func:`grey_centre`.
+    ``transposed``: ``img`` is the frame as (width, height), and ``detect`` where the runs
+    are found, as for :func:`grey_centre`.
     """
     full_scale(img.dtype)  # unsigned integers only
     imT = _columns(img, transposed)
-    thr, full = _level_and_max(imT, threshold, level, data_max)
+    src = imT if detect is None else _columns(detect, transposed)
+    thr, full = _level_and_max(src, threshold, level, data_max)
     W, H = imT.shape
     flat = imT.reshape(-1)
-    col, r0, r1 = _runs_nb(np.flatnonzero(imT > _int_threshold(thr, imT.dtype)), H, float(min_width))
+    col, r0, r1 = _candidate_runs(src, thr, min_width)
     k = col.size
     if k == 0:
         return (empty_centres(), {"noise_dn": float("nan"), "relative_noise": float("nan")}) \
@@ -930,10 +969,11 @@ def gaussian(
     slope = _slopes_nb(col, np.where(ok, c, 0.5 * (r0 + r1)), W, width)
     ny = 1.0 / np.sqrt(1.0 + slope * slope)
     nx = -slope * ny
+    peak = _run_peaks(flat, H, col, r0, r1)
     clean = (flags & (CLOSE | EDGE)) == 0
     wn_run = width * ny
     typical = np.median(wn_run[clean]) if clean.any() else np.median(wn_run)
-    flags[(width > max_width) | (wn_run > MERGE_FACTOR * typical)] |= MERGED
+    flags[_merged(src, col, r0, r1, width, wn_run, thr, max_width, clean)] |= MERGED
     if across:
         # a column cuts a steep, curved stripe obliquely: the profile along it is skewed
         # towards the centre of curvature and its fitted centre with it (by ~2.5 sigma_col^2
@@ -958,7 +998,7 @@ def gaussian(
     s_n = s * ny  # sigma across the stripe
     out = {
         "u": u, "v": v, "strength": a * s * np.sqrt(2.0 * np.pi),
-        "peak": _run_peaks(flat, H, col, r0, r1), "width": width,
+        "peak": peak, "width": width,
         "width_n": 2.0 * np.sqrt(2.0 * np.log(2.0)) * s_n, "nx": nx, "ny": ny,
         "ridge": np.full(k, np.nan), "flags": flags,
     }
@@ -1088,22 +1128,21 @@ def steger(
     *,
     data_max: float | None = None,
     level: float | None = None,
+    detect: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Steger's Hessian line detector, one centre per stripe per column (module doc).
 
     Candidates are the pixels of the runs above the threshold (``threshold``, ``level``,
-    ``data_max`` as for :func:`grey_centre`) of
+    ``data_max`` and ``detect`` as for :func:`grey_centre`) of
     at least ``min_width`` px; ``sigma`` is the Gaussian scale in px. Returns a centre table
     in frame-local pixels, sorted by (u, v).
     """
     full_scale(img.dtype)  # unsigned integers only
     H, W = img.shape
     imT = np.ascontiguousarray(cv2.transpose(img))
-    thr, full = _level_and_max(imT, threshold, level, data_max)
-    if HAVE_NUMBA:
-        col, r0, r1 = _runs_nb(np.flatnonzero(imT > _int_threshold(thr, imT.dtype)), H, float(min_width))
-    else:  # pragma: no cover - numba is a dependency
-        col, r0, r1 = _runs(imT, thr, min_width)
+    src = imT if detect is None else np.ascontiguousarray(cv2.transpose(detect))
+    thr, full = _level_and_max(src, threshold, level, data_max)
+    col, r0, r1 = _candidate_runs(src, thr, min_width, HAVE_NUMBA)
     k = col.size
     if k == 0:
         return empty_centres()
@@ -1150,9 +1189,7 @@ def steger(
     peak_run = _run_peaks(imT.reshape(-1), H, col, r0, r1)
     flags_run[peak_run >= full] |= SATURATED
     per_run = np.bincount(seg, minlength=k)
-    wn_run = width_run * _run_ny(col, r0, r1, W)
-    typical = np.median(wn_run)
-    merged_run = (width_run > max_width) | (wn_run > MERGE_FACTOR * typical)
+    merged_run = _merged(src, col, r0, r1, width_run, width_run * _run_ny(col, r0, r1, W), thr, max_width)
     # a merged run that Steger resolved into two ridges is two close stripes, not a blob
     flags_run[merged_run & (per_run <= 1)] |= MERGED
     flags_run[merged_run & (per_run >= 2)] |= CLOSE
@@ -1195,7 +1232,7 @@ def _run_lengths_nb(imT, thr, q0, q1):  # pragma: no cover - compiled
 
 @_jit
 def _has_long_run_nb(imT, thr, stride, longest):  # pragma: no cover - compiled
-    """Whether every ``stride``-th row of ``imT`` holds a run above ``thr`` longer than ``longest``."""
+    """Whether any ``stride``-th row of ``imT`` holds a run above ``thr`` longer than ``longest``."""
     A, B = imT.shape
     for a in range(0, A, stride):
         n = 0
@@ -1241,12 +1278,14 @@ def _swap_axes(c: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return out
 
 
-def any_angle(columns_fn, imT: np.ndarray, level: float, max_width: float) -> dict[str, np.ndarray]:
+def any_angle(columns_fn, imT: np.ndarray, level: float, max_width: float,
+              detect: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Centres of stripes at any angle: profiles along the columns, and along the rows where
     the stripe is steeper than ``ROW_SLOPE``.
 
-    ``columns_fn(a)`` extracts the centres of an image given as (width, height), profiling
-    along its second axis, at the absolute threshold ``level``. It runs on the frame
+    ``columns_fn(a, d)`` extracts the centres of an image given as (width, height), profiling
+    along its second axis, from the runs above the absolute threshold ``level`` of ``d`` (the
+    same layout; ``None``: of ``a``); ``detect`` is that image for the frame. It runs on the frame
     (``imT``, the frame as (width, height)) and, when that finds stripes steeper than
     ``ROW_SLOPE`` rows per column or the frame holds column runs longer than ``ROW_SLOPE``
     times the typical run (``max_width`` at most), on the transposed frame. Each
@@ -1256,24 +1295,25 @@ def any_angle(columns_fn, imT: np.ndarray, level: float, max_width: float) -> di
     centre table with ``axis`` (0: profile along the column, ``u`` integer; 1: along the row,
     ``v`` integer), sorted by (u, v).
     """
-    c = columns_fn(imT)
+    c = columns_fn(imT, detect)
     n = c["u"].size
     c["axis"] = np.zeros(n, np.uint8)
     if not np.isfinite(level):
         return c
-    thr = _int_threshold(level, imT.dtype)
+    src = imT if detect is None else detect
+    thr = _int_threshold(level, src.dtype)
     with np.errstate(divide="ignore", invalid="ignore"):
         slope = np.abs(c["nx"] / c["ny"])
     # a steep stripe's column runs are long (a fit may have failed on them: look at the runs);
     # every second column is enough for a stripe two pixels wide
     typical = float(np.median(c["width"])) if n else 2.0
     longest = int(min(max_width, ROW_SLOPE * typical))
-    if not (np.any(slope > ROW_SLOPE) or _has_long_run_nb(imT, thr, 2, longest)):
+    if not (np.any(slope > ROW_SLOPE) or _has_long_run_nb(src, thr, 2, longest)):
         return c
     imR = np.ascontiguousarray(cv2.transpose(imT))  # the frame as (height, width)
-    r = columns_fn(imR)
+    r = columns_fn(imR, None if detect is None else np.ascontiguousarray(cv2.transpose(detect)))
     # the column run through each row centre's pixel
-    lc = _run_lengths_nb(imT, thr, np.round(r["v"]).astype(np.int64), r["u"].astype(np.int64))
+    lc = _run_lengths_nb(src, thr, np.round(r["v"]).astype(np.int64), r["u"].astype(np.int64))
     keep_r = lc > ROW_SLOPE * r["width"]
     keep_r &= _long_steep(r["u"], r["v"], keep_r, imT.shape)
     if not keep_r.any():
@@ -1296,6 +1336,44 @@ def any_angle(columns_fn, imT: np.ndarray, level: float, max_width: float) -> di
     out = {k: np.concatenate([c[k][keep_c], r[k]]) for k in c}
     o = np.lexsort((out["v"], out["u"]))
     return {k: x[o] for k, x in out.items()}
+
+
+def remove_local_background(imT: np.ndarray, max_width: float) -> np.ndarray:
+    """The frame (as (width, height)) less its local background: a grey opening by a square a
+    little wider than ``max_width`` (the widest stripe run) keeps what is broad, a surface lit
+    by the room or a light part on a dark table, and takes away what is narrow, the stripes;
+    the difference is the stripes alone on a background near 0 (a white top-hat)."""
+    k = 2 * int(np.ceil(0.5 * max_width)) + 1
+    opened = cv2.morphologyEx(imT, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
+    return cv2.subtract(imT, opened)
+
+
+def with_local_background(
+    any_angle_at, imT: np.ndarray, levels: dict[str, float], threshold: float, max_width: float
+) -> tuple[dict[str, np.ndarray], dict[str, float], np.ndarray | None]:
+    """Centres of a frame whose room-lit surfaces may stand above the stripe threshold.
+
+    ``any_angle_at(img, level, detect)`` extracts the centres of ``img`` (as (width, height))
+    from the runs above the absolute threshold ``level`` of ``detect`` (``None``: of ``img``);
+    ``levels`` are the frame's (:func:`frame_levels`). It runs on the frame first; where that
+    finds runs wider than ``max_width`` (a surface lit by the room above the threshold, the
+    stripe inside it), it runs again with the runs found in the frame less its local
+    background (:func:`remove_local_background`), at that image's own levels (``threshold`` as
+    for the frame); the profiles are fitted on the frame itself either way, so the centres do
+    not depend on how the background was taken out. Returns the centres, the levels of the
+    image the runs were found in and that image where it is not the frame (else ``None``).
+    Frames without such surfaces pay nothing.
+    """
+    c = any_angle_at(imT, levels["level"], None)
+    # the runs themselves, not the centres: an extractor may drop a run it cannot fit; a lit
+    # surface spans many columns, every 4th is looked at
+    if not np.isfinite(levels["level"]) or not (
+            np.any(c["width"] > max_width)
+            or _has_long_run_nb(imT, _int_threshold(levels["level"], imT.dtype), 4, int(max_width))):
+        return c, levels, None
+    top = remove_local_background(imT, max_width)
+    lv = frame_levels(top, threshold, levels["data_max"])
+    return any_angle_at(imT, lv["level"], top), lv, top
 
 
 def extract(
@@ -1323,19 +1401,31 @@ def extract(
     kw = {"threshold": threshold, "min_width": min_width, "max_width": max_width,
           "data_max": dm, "level": lv}
 
-    def fn(a: np.ndarray) -> dict[str, np.ndarray]:
-        if extractor == "grey_centre":
-            return grey_centre(a, pad=pad, transposed=True, **kw)
-        if extractor == "gaussian":
-            return gaussian(a, pad=fit_pad, relative_noise=relative_noise, across=fit_across,
-                            transposed=True, **kw)
-        return steger(np.ascontiguousarray(cv2.transpose(a)), sigma=sigma, **kw)
+    def fn_at(level_: float):
+        k_ = {**kw, "level": level_}
+
+        def fn(a: np.ndarray, d: np.ndarray | None = None) -> dict[str, np.ndarray]:
+            if extractor == "grey_centre":
+                return grey_centre(a, pad=pad, transposed=True, detect=d, **k_)
+            if extractor == "gaussian":
+                return gaussian(a, pad=fit_pad, relative_noise=relative_noise, across=fit_across,
+                                transposed=True, detect=d, **k_)
+            return steger(np.ascontiguousarray(cv2.transpose(a)), sigma=sigma, detect=_rows_of(d), **k_)
+        return fn
 
     if not rows:
-        c = fn(imT)
+        c = fn_at(lv)(imT)
         c["axis"] = np.zeros(c["u"].size, np.uint8)
         return c
-    return any_angle(fn, imT, lv, max_width)
+    if level is not None:  # an absolute threshold given: no background of the frame's own
+        return any_angle(fn_at(lv), imT, lv, max_width)
+    return with_local_background(lambda a, lvl, d: any_angle(fn_at(lvl), a, lvl, max_width, d),
+                                 imT, frame_levels(imT, threshold, dm), threshold, max_width)[0]
+
+
+def _rows_of(d: np.ndarray | None) -> np.ndarray | None:
+    """A detection image given as (width, height) in the (height, width) layout Steger takes."""
+    return None if d is None else np.ascontiguousarray(cv2.transpose(d))
 
 
 # ----------------------------------------------------------------------------- stage
@@ -1411,22 +1501,35 @@ def _frame_work(extractor: str, params: dict[str, Any], data_max: float):
         lv = frame_levels(imT, params["threshold"], data_max)
         info: dict[str, Any] = {"levels": lv}
 
-        def fn(a: np.ndarray) -> dict[str, np.ndarray]:
-            if extractor == "gaussian":
-                c, inf = gaussian(a, pad=params["fit_pad"], relative_noise=params["relative_noise"],
-                                  across=params["fit_across"], return_info=True, transposed=True,
-                                  level=lv["level"], **kw)
-                info.setdefault("fit", inf)  # the column pass's: the frame's noise
-                return c
-            if extractor == "grey_centre":
-                return grey_centre(a, pad=params["pad"], transposed=True, level=lv["level"], **kw)
-            return steger(np.ascontiguousarray(cv2.transpose(a)), sigma=params["sigma"],
-                          level=lv["level"], **kw)  # Steger smooths the image itself
+        def fn_at(level: float):
+            first = [True]
 
-        c = any_angle(fn, imT, lv["level"], params["max_width"])
+            def fn(a: np.ndarray, d: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                if extractor == "gaussian":
+                    c, inf = gaussian(a, pad=params["fit_pad"], relative_noise=params["relative_noise"],
+                                      across=params["fit_across"], return_info=True, transposed=True,
+                                      level=level, detect=d, **kw)
+                    if first[0]:  # the column pass's (not the rows'): the frame's noise
+                        info["fit"], first[0] = inf, False
+                    return c
+                if extractor == "grey_centre":
+                    return grey_centre(a, pad=params["pad"], transposed=True, level=level, detect=d, **kw)
+                return steger(np.ascontiguousarray(cv2.transpose(a)), sigma=params["sigma"],
+                              level=level, detect=_rows_of(d), **kw)  # Steger smooths the image itself
+            return fn
+
+        mw = params["max_width"]
+        c, lv, top = with_local_background(
+            lambda a, level, d: any_angle(fn_at(level), a, level, mw, d), imT, lv, params["threshold"], mw)
+        info["levels"], info["local_background"] = lv, top is not None
         mp = params.get("min_peak")
         if mp and c["u"].size and np.isfinite(lv["peak"]):
-            bright = c["peak"] >= lv["background"] + mp * (lv["peak"] - lv["background"])
+            peak = c["peak"]
+            if top is not None:  # the levels are the background-free image's: so the heights
+                W, H = top.shape
+                peak = top[np.round(c["u"]).astype(np.int64).clip(0, W - 1),
+                           np.round(c["v"]).astype(np.int64).clip(0, H - 1)]
+            bright = peak >= lv["background"] + mp * (lv["peak"] - lv["background"])
             if not bright.all():
                 c = {k: x[bright] for k, x in c.items()}
         return {**c, "_info": info}
@@ -1517,7 +1620,7 @@ def run_extract_stripes(
         "scan_window": [win.x, win.y, win.width, win.height],
         "frames_in_scan": len(sc.frames),
     }
-    counts = {"frames": 0, "frames_without_stripe": 0, "centres": 0,
+    counts = {"frames": 0, "frames_without_stripe": 0, "frames_local_background": 0, "centres": 0,
               **{f"flag_{name}": 0 for name in FLAG_NAMES.values()}}
     t0 = time.perf_counter()
     noise: list[tuple[int, float, float]] = []
@@ -1551,6 +1654,7 @@ def run_extract_stripes(
                 counts["frames"] += 1
                 nc = c["u"].size
                 counts["frames_without_stripe"] += nc == 0
+                counts["frames_local_background"] += bool(c["_info"]["local_background"])
                 counts["centres"] += nc
                 for name, k in flags.items():
                     counts[f"flag_{name}"] += k
@@ -1579,8 +1683,10 @@ def run_extract_stripes(
         meta["frame_range"] = [lo, hi]
         writer.close(meta)
     dt = time.perf_counter() - t0
-    log.info("scan %s: %d frames, %d centres, %.1f frames/s (%s, %d threads)", scan,
-             counts["frames"], counts["centres"], counts["frames"] / max(dt, 1e-9), extractor, threads)
+    log.info("scan %s: %d frames, %d centres, %.1f frames/s (%s, %d threads); %d frames had room-lit "
+             "surfaces above the threshold and were extracted less their local background", scan,
+             counts["frames"], counts["centres"], counts["frames"] / max(dt, 1e-9), extractor, threads,
+             counts["frames_local_background"])
     return meta
 
 
