@@ -5,6 +5,7 @@ propagation (GUM's law of propagation) through the same re-triangulation."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -304,3 +305,39 @@ def _posed(camera: Camera, board, st) -> np.ndarray:
     from crossline.calibrate.pose import board_pose
 
     return board_pose(camera, board, st.board_points, bias_correction=st.bias_correction).T_cam_board
+
+
+def test_a_gauge_seen_whole_in_few_frames_gets_u_from_the_draws_that_define_it(synthetic) -> None:
+    """Heights are referenced per frame; a frame resampling may hold no frame that saw both
+    faces (random rig 2's gauge): such a draw leaves the height undefined. It is counted, the
+    others give u, and where they are too few u is NaN and the row gets no U (no traceback)."""
+    raw, interim = synthetic
+    model = _model(np.random.default_rng(5))
+    sp = _scan(raw, interim, "gauge", model)
+    frame = pd.read_parquet(interim / "points" / "gauge.parquet")["frame"].to_numpy()
+    g = mt.measure_gauge_block(sp.points, 20.0, frame=frame)
+    assert g.reference == "frame"
+    # keep the top face of two frames only: most resamplings of the 40 frames still draw one
+    top_frames = np.unique(frame[g.top_mask])
+    keep = ~g.top_mask | np.isin(frame, top_frames[:2])
+    figures = uc.gauge_figures(replace(g, top_mask=g.top_mask[keep], plate_mask=g.plate_mask[keep]),
+                               sp.points[keep], frame[keep])
+    sub = replace(sp, points=sp.points[keep], uv=sp.uv[keep], laser=sp.laser[keep],
+                  frame_index=sp.frame_index[keep], R_base_tool=sp.R_base_tool[keep], p_tool=sp.p_tool[keep])
+    res = uc.monte_carlo(sub, model, figures, draws=60, seed=1)["mean_mm"]
+    # P(a frame of 40 is never drawn in 40) = (39/40)^40 = 0.36: both never drawn ~ 0.13
+    assert 0 < res["draws_undefined"] < 30
+    assert np.isfinite(res["u"]) and res["u"] > 0
+    # one frame: the draws that miss it (about 36 %) leave the height undefined
+    one = np.isin(frame[keep], top_frames[:1]) | ~g.top_mask[keep]
+    fig1 = uc.gauge_figures(replace(g, top_mask=g.top_mask[keep][one], plate_mask=g.plate_mask[keep][one]),
+                            sub.points[one], frame[keep][one])
+    sub1 = replace(sub, points=sub.points[one], uv=sub.uv[one], laser=sub.laser[one],
+                   frame_index=sub.frame_index[one], R_base_tool=sub.R_base_tool[one], p_tool=sub.p_tool[one])
+    res1 = uc.monte_carlo(sub1, model, fig1, draws=60, seed=1)["mean_mm"]
+    assert 8 < res1["draws_undefined"] < 36 and np.isfinite(res1["u"])
+    # a figure that no resampling of the frames defines: u, U and the interval are NaN
+    res2 = uc.monte_carlo(sub1, model, lambda P, w: {"x": 0.0 if np.all(w == 1) else np.nan},
+                          draws=20, seed=1)["x"]
+    assert res2["draws_undefined"] == 20 and np.isnan(res2["u"]) and np.isnan(res2["U"])
+    assert np.isnan(res2["interval_95"]).all()

@@ -310,8 +310,8 @@ def _with_uncertainty(row: dict, unc: dict | None, form_key: str) -> None:
     """
     key = form_key if row["id"] == "sphere_form_error_mm" else ROW_FIGURES.get(row["id"])
     fig = ((unc or {}).get("figures") or {}).get(key) if key else None
-    if fig is None or row["value"] is None:
-        return
+    if fig is None or row["value"] is None or not np.isfinite(fig["U"]):
+        return  # no U where the draws leave it undetermined (too few frames): no decision either
     U = float(fig["U"])
     row["U"] = U
     row["k"] = fig["k"]

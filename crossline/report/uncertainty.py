@@ -243,6 +243,8 @@ def gauge_figures(g: Any, points: np.ndarray, frame: np.ndarray | None, min_fram
             off = np.bincount(pinv, weights=res * (wp > 0), minlength=len(ufr)) / np.maximum(cnt, 1)
             ok = cnt[tk] >= min_frame_points
             h, wt = h - off[tk], wt * ok
+        if not wt.sum() > 0:  # a resampling without a frame that saw both faces: no height
+            return {"mean_mm": float("nan")}
         return {"mean_mm": float(np.average(h, weights=wt))}
 
     return figures
@@ -297,6 +299,12 @@ def sphere_figures(s: Any) -> Figures:
     return figures
 
 
+def _finite_std(x: np.ndarray, enough: bool) -> float:
+    """Sample standard deviation of the finite draws; NaN where they are too few."""
+    x = x[np.isfinite(x)]
+    return float(np.std(x, ddof=1)) if enough and x.size >= 2 else float("nan")
+
+
 def monte_carlo(
     sp: ScanPoints, model: CalibrationModel, figures: Figures, *, draws: int = 200, seed: int = 0,
 ) -> dict[str, Any]:
@@ -333,14 +341,20 @@ def monte_carlo(
     alone = {c: run((c,)) for c in CONTRIBUTORS if known[c]}
     result: dict[str, Any] = {}
     for k, v in value.items():
-        u = float(np.std(total[k], ddof=1))
-        parts = {c: float(np.std(alone[c][k], ddof=1)) if c in alone else 0.0 for c in CONTRIBUTORS}
+        # a draw may leave a figure undefined (a frame resampling without a frame that saw both
+        # faces of the gauge): it is counted, and the statistics are those of the other draws
+        # while they are most of them; else the figure's uncertainty is not determined (NaN)
+        t = total[k][np.isfinite(total[k])]
+        enough = t.size >= max(2, draws // 2)
+        u = _finite_std(total[k], enough)
+        parts = {c: _finite_std(alone[c][k], enough) if c in alone else 0.0 for c in CONTRIBUTORS}
         var = sum(x**2 for x in parts.values())
-        lo, hi = np.percentile(total[k], [2.5, 97.5])
+        lo, hi = np.percentile(t, [2.5, 97.5]) if enough else (float("nan"), float("nan"))
         result[k] = {
             "value": v, "u": u, "U": COVERAGE_FACTOR * u, "k": COVERAGE_FACTOR,
             "interval_95": [float(lo), float(hi)],
-            "mc_mean": float(np.mean(total[k])),
+            "mc_mean": float(np.mean(t)) if enough else float("nan"),
+            "draws_undefined": int(draws - t.size),
             "budget": {c: {"u": x, "share": x**2 / var if var > 0 else 0.0} for c, x in parts.items()},
             "dominant": max(parts, key=parts.get),
         }
