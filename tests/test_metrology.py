@@ -341,6 +341,24 @@ def test_calibration_errors_vanish_for_the_truth_and_scale_with_it():
     assert mt.transform_error(T, T, vol)["rms_mm"] < 1e-12
 
 
+def test_a_principal_point_error_is_a_turn_of_the_frame_and_a_focal_error_is_not():
+    from crossline.geometry import matrix_to_rotvec
+
+    cam = Camera(K, DIST, (3072, 2048))
+    vol = mt.volume_points(cam, region=(207, 624, 2658, 800))
+    # cx off by 0.8 px: rays turned about the y axis by 0.8 / fx rad, nearly all of it
+    shifted = Camera(K + np.array([[0, 0, 0.8], [0, 0, 0], [0, 0, 0]]), DIST, (3072, 2048))
+    e = mt.camera_error(shifted, cam, vol)
+    rv = matrix_to_rotvec(np.asarray(e["frame_free"]["R_cam_est_cam"]))
+    assert np.linalg.norm(rv) == pytest.approx(0.8 / K[0, 0], rel=0.02)
+    assert abs(rv[1]) / np.linalg.norm(rv) > 0.999
+    assert e["rms_px"] == pytest.approx(0.8, abs=1e-9) and e["frame_free"]["rms_px"] < 0.02
+    # a focal length 0.1 % long scales the image about the centre: no rotation undoes it
+    longer = Camera(K * np.array([[1.001, 1, 1], [1, 1.001, 1], [1, 1, 1]]), DIST, (3072, 2048))
+    e = mt.camera_error(longer, cam, vol)
+    assert e["frame_free"]["rms_px"] > 0.8 * e["rms_px"] > 0.3
+
+
 def test_deviation_stats():
     d = np.array([-0.06, -0.01, 0.0, 0.02, 0.05])
     s = mt.deviation_stats(d, band_mm=0.05)

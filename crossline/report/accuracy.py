@@ -920,6 +920,10 @@ def _validation(inputs: dict, truth: dict, rig: Any, met: dict,
     if cam and true_cam is not None and "K" in cam:
         est = Camera(np.asarray(cam["K"]), np.asarray(cam["dist"]), tuple(cam["image_size"]))
         v["camera"] = mt.camera_error(est, true_cam, vol)
+    # the estimated camera frame's rotation against the true one (see mt.frame_rotation): the
+    # planes and hand-eye are compared also in the frame turned back by it, so that a figure
+    # shows what bends the measured points, apart from what the arm's frame does not feel
+    R = np.asarray(v["camera"]["frame_free"]["R_cam_est_cam"]) if "camera" in v else None
     las = inputs.get("lasers")
     tl = truth.get("lasers") or {}
     if las and true_cam is not None:
@@ -929,6 +933,10 @@ def _validation(inputs: dict, truth: dict, rig: Any, met: dict,
                 v["lasers"][L] = mt.laser_plane_error(
                     (las[L]["normal"], las[L]["d"]), (tl[L]["normal"], tl[L]["d"]), true_cam,
                     z_range=z, region=region)
+                if R is not None:
+                    v["lasers"][L]["frame_free"] = mt.laser_plane_error(
+                        (R.T @ np.asarray(las[L]["normal"], dtype=np.float64), las[L]["d"]),
+                        (tl[L]["normal"], tl[L]["d"]), true_cam, z_range=z, region=region)
         if "A" in tl and "B" in tl and "A" in las and "B" in las:
             ang_t = float(np.degrees(mt.angle_between(np.asarray(tl["A"]["normal"], float),
                                                       np.asarray(tl["B"]["normal"], float))))
@@ -940,6 +948,10 @@ def _validation(inputs: dict, truth: dict, rig: Any, met: dict,
         Tt = np.asarray(truth["T_tool_cam"], dtype=np.float64)
         h = {"chosen": mt.transform_error(np.asarray(he["T_tool_cam"]), Tt, vol),
              "method": he.get("method")}
+        if R is not None:
+            R4 = np.eye(4)
+            R4[:3, :3] = R
+            h["chosen"]["frame_free"] = mt.transform_error(np.asarray(he["T_tool_cam"]) @ R4, Tt, vol)
         for name, m in sorted((he.get("methods") or {}).items()):
             Xm = m.get("T_tool_cam", m.get("X")) if isinstance(m, dict) else None
             if Xm is not None and np.asarray(Xm).shape == (4, 4):

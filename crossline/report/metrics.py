@@ -42,6 +42,7 @@ __all__ = [
     "compare_lasers",
     "deviation_stats",
     "fit_plane",
+    "frame_rotation",
     "label_errors",
     "laser_codes",
     "laser_plane_error",
@@ -979,16 +980,47 @@ def plane_depth_range(
     return float(lo), float(hi)
 
 
+def frame_rotation(est: Any, true: Any, volume_cam: np.ndarray) -> np.ndarray:
+    """Rotation R (3, 3) of the estimated camera's frame against the true one that best explains
+    the projection difference over the volume: ``est.project(R @ X)`` nearest ``true.project(X)``.
+
+    A camera model is determined by its views only up to such a rotation where they leave the
+    principal point loose: a principal-point error with the rotation that undoes it bends no
+    ray, and the laser planes and hand-eye, found through the same camera, carry the same
+    rotation, so measured points in the arm's frame do not feel it.
+    """
+    from scipy.optimize import least_squares
+
+    from crossline.geometry import rotvec_to_matrix
+
+    X = np.asarray(volume_cam, dtype=np.float64)
+    target = true.project(X)
+
+    def resid(rv: np.ndarray) -> np.ndarray:
+        return (est.project(X @ rotvec_to_matrix(rv).T) - target).ravel()
+
+    return rotvec_to_matrix(least_squares(resid, np.zeros(3), x_scale=1e-3).x)
+
+
 def camera_error(est: Any, true: Any, volume_cam: np.ndarray) -> dict[str, Any]:
     """Projection difference (px) of the estimated camera against the true one over the volume,
-    and the parameter differences (estimated minus true)."""
+    the same after the best rotation of its frame (``frame_free``: what bends rays), and the
+    parameter differences (estimated minus true)."""
+    from crossline.geometry import rotation_angle
+
     duv = est.project(volume_cam) - true.project(volume_cam)
     dn = np.linalg.norm(duv, axis=1)
+    R = frame_rotation(est, true, volume_cam)
+    dn_free = np.linalg.norm(est.project(volume_cam @ R.T) - true.project(volume_cam), axis=1)
     names = ("fx", "fy", "cx", "cy")
     out: dict[str, Any] = {
         "rms_px": float(np.sqrt(np.mean(dn**2))),
         "max_px": float(dn.max()),
         "n_points": len(volume_cam),
+        "frame_free": {"rms_px": float(np.sqrt(np.mean(dn_free**2))),
+                       "max_px": float(dn_free.max()),
+                       "rotation_deg": float(np.degrees(rotation_angle(R))),
+                       "R_cam_est_cam": R.tolist()},
     }
     for n_, e, t in zip(names, (est.fx, est.fy, est.cx, est.cy),
                         (true.fx, true.fy, true.cx, true.cy), strict=True):
