@@ -170,6 +170,20 @@ def test_gaussian_symmetric_is_unbiased():
     assert np.sqrt(np.mean(err_of(c, t) ** 2)) < 0.01
 
 
+@pytest.mark.parametrize("top", [4.0, 6.0, 8.0])
+def test_gaussian_stripe_near_the_frame_border_keeps_its_centre(top):
+    # a stripe whose tail runs into the border: the window takes the tail up to the border and
+    # the background comes from the other side (before, the tail's pixels were the background
+    # line's: 0.053 / 0.018 / 0.017 px towards the middle at 4 / 6 / 8 rows from the border)
+    t = top + np.random.default_rng(2).uniform(0, 1, W)
+    img = profile_image([t], sigma=2.0)
+    for im, truth in ((img, t), (img[::-1].copy(), H - 1 - t)):
+        c = gaussian(im, across=False)
+        e = err_of(c, truth)
+        assert c["u"].size == W
+        assert abs(np.mean(e)) < 0.002 and np.sqrt(np.mean(e**2)) < 0.006
+
+
 def speckled_columns(n=4000, contrast=0.15, noise=20.0, peak=20000.0, sigma=2.2, seed=7):
     """16-bit columns of one point-sampled Gaussian stripe with multiplicative (speckle-like)
     and additive noise, the model the fit assumes; returns (image, true centres, model)."""
