@@ -176,6 +176,25 @@ def test_gap_is_the_normal_displacement_of_the_a_frame(plate):
     assert np.abs(cr.gap[~a & ~b]).max() < 1e-6
 
 
+def test_crossings_of_sparsely_sampled_stripes_are_found(plate):
+    # a coarse camera samples its stripes 3x (A) and 5x (B) further apart than this scan's
+    # 0.059 mm: the stripe curves' windows widen to 6 spacings of their own laser (before,
+    # a fixed 0.6 mm held under 8 points and no crossing of such a rig was ever fitted)
+    frames, views = camera_centres(plate.frame, plate.df[["x_cam", "y_cam", "z_cam"]].to_numpy(),
+                                   plate.p_true)
+    fpos = np.searchsorted(frames, plate.frame)
+    key = fpos * 4 + plate.laser
+    o = np.lexsort((plate.df["u"].to_numpy(), key))
+    first = np.r_[0, np.flatnonzero(np.diff(key[o])) + 1]
+    rank = np.empty(len(key), np.int64)
+    rank[o] = np.arange(len(o)) - np.repeat(first, np.diff(np.r_[first, len(o)]))
+    keep = np.where(plate.laser == 1, rank % 3 == 0, rank % 5 == 0)
+    dense = R.find_crossings(fpos, plate.laser, plate.p_true, views)
+    cr = R.find_crossings(fpos[keep], plate.laser[keep], plate.p_true[keep], views)
+    assert len(cr.gap) == len(dense.gap) > 3000
+    assert np.abs(cr.gap).max() < 1e-9 and np.abs(cr.x[:, 2]).max() < 1e-9
+
+
 def test_exact_scan_stays_exact(ball):
     # nothing to correct: what moves is the quadratic stripe model's own error at the
     # crossings (0.02 µm), a few hundredths of a µm, against the arm's 5.8 µm

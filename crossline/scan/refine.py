@@ -54,6 +54,7 @@ __all__ = [
 LEVER_MM = 300.0  # rotation prior from the position figure: the error spread over one arm link
 HALF_MM = 0.6  # stripe fitted either side of a crossing, mm
 MIN_ANGLE_DEG = 30.0  # stripes crossing at a smaller angle are not used
+MIN_SPACINGS = 6  # a crossing's stripe curves reach at least this many point spacings either side
 MAX_WIDTH_RATIO = 2.0  # centres of column cuts longer than this x their laser's median: no crossings
 
 
@@ -258,10 +259,11 @@ def find_crossings(
     ``frame_pos`` (N,) is each point's frame as an index 0..F-1, ``laser`` (N,) its laser
     code (1 = A, 2 = B), ``viewpoints`` (F, 3) the camera centre of each frame (orients the
     normals). Candidates are A points (every other one along the stripe) with a B point
-    within ``radius_mm`` (default: 3 point spacings, at least 0.1 mm); each pair of stripes
-    keeps its closest candidate per 2 mm cell, the two stripes are fitted locally by
-    quadratic curves over ``half_mm`` either side and the crossing is the closest approach
-    of the two curves; it is kept if it lies within ``half_mm / 2`` of both seeds, the
+    within ``radius_mm`` (default: 3 point spacings, at least 0.1 mm and one spacing of the
+    sparser laser); each pair of stripes keeps its closest candidate per 2 mm cell, the two
+    stripes are fitted locally by quadratic curves over ``half_mm`` either side (at least
+    ``MIN_SPACINGS`` of that laser's point spacings) and the crossing is the closest approach
+    of the two curves; it is kept if it lies within half a window of both seeds, the
     stripes cross at ``min_angle_deg`` or more and the gap is under ``radius_mm``.
     """
     from scipy.spatial import cKDTree
@@ -277,10 +279,22 @@ def find_crossings(
                       np.zeros(0), np.zeros(0), np.zeros(0))
     if len(a) < 8 or len(b) < 8:
         return empty
-    nxt = np.linalg.norm(np.diff(po, axis=0), axis=1)[sid[1:] == sid[:-1]]
-    spacing = float(np.median(nxt)) if len(nxt) else 0.05
+    step = np.linalg.norm(np.diff(po, axis=0), axis=1)
+    along = sid[1:] == sid[:-1]
+    spacing = float(np.median(step[along])) if along.any() else 0.05
+    # each laser's own point spacing: a stripe that runs steeply through the image, or meets
+    # the surface at a grazing angle, is sampled more sparsely than the other (random rig 1:
+    # 0.27 mm against 0.09)
+    sp = {}
+    for code in (1, 2):
+        m = along & (lo_[1:] == code)
+        sp[code] = float(np.median(step[m])) if m.any() else spacing
     if radius_mm is None:
-        radius_mm = max(0.1, 3.0 * spacing)
+        radius_mm = max(0.1, 3.0 * spacing, sp[1], sp[2])
+    # a quadratic needs its points: where a stripe is sampled sparsely (a camera of coarse
+    # resolution, 0.17 mm apart on random rig 0 against 0.05 on the paper's) its window grows
+    # to MIN_SPACINGS of them either side, else no crossing of such a rig is ever fitted
+    half = {code: max(half_mm, MIN_SPACINGS * sp[code]) for code in (1, 2)}
     tree = cKDTree(po[b])
     # every other A point is enough to seed: the crossing itself is found by the curve fits
     a = a[::2]
@@ -303,9 +317,10 @@ def find_crossings(
     ia, ib = ia[o[first]], ib[o[first]]
     # window slots either side: the half-length in median point spacings, with room for
     # sparser stretches and for a second segment of the stripe interleaved in the order
-    width = int(np.clip(np.ceil(1.6 * half_mm / max(spacing, 1e-3)), 8, 200))
-    ca, Ainv_a, ok_a = _curves(po, ia, start[sid[ia]], end[sid[ia]], half_mm, width)
-    cb, Ainv_b, ok_b = _curves(po, ib, start[sid[ib]], end[sid[ib]], half_mm, width)
+    width = {code: int(np.clip(np.ceil(1.6 * half[code] / max(min(spacing, sp[code]), 1e-3)), 8, 200))
+             for code in (1, 2)}
+    ca, Ainv_a, ok_a = _curves(po, ia, start[sid[ia]], end[sid[ia]], half[1], width[1])
+    cb, Ainv_b, ok_b = _curves(po, ib, start[sid[ib]], end[sid[ib]], half[2], width[2])
     ok = ok_a & ok_b
     ia, ib, ca, cb, Ainv_a, Ainv_b = ia[ok], ib[ok], ca[ok], cb[ok], Ainv_a[ok], Ainv_b[ok]
     s, r, xa, xb, ta, tb = _closest(ca, cb)
@@ -322,7 +337,7 @@ def find_crossings(
                       np.stack([np.ones_like(s), s, s * s], 1))
     lev_b = np.einsum("ka,kab,kb->k", np.stack([np.ones_like(r), r, r * r], 1), Ainv_b,
                       np.stack([np.ones_like(r), r, r * r], 1))
-    keep = ((np.abs(s) <= 0.5 * half_mm) & (np.abs(r) <= 0.5 * half_mm)
+    keep = ((np.abs(s) <= 0.5 * half[1]) & (np.abs(r) <= 0.5 * half[2])
             & (sin >= np.sin(np.radians(min_angle_deg))) & (np.abs(gap) <= radius_mm))
     # the same crossing found from two cells: keep the one whose seeds were closest to it
     k = np.flatnonzero(keep)
@@ -332,7 +347,7 @@ def find_crossings(
     dup = np.zeros(len(k), bool)
     for lag in (1, 2, 3):
         same = pr[lag:] == pr[:-lag]
-        close = np.linalg.norm(x[k[lag:]] - x[k[:-lag]], axis=1) < 2 * half_mm
+        close = np.linalg.norm(x[k[lag:]] - x[k[:-lag]], axis=1) < 2 * max(half[1], half[2])
         dup[lag:] |= same & close & ~dup[:-lag]
     k = np.sort(k[~dup])
     # how many candidates survive each step, for the stats: seeds (closest A-B point pairs),
