@@ -29,6 +29,7 @@ from crossline.report.nominal import (
     deviation_summary,
     load_nominal,
     signed_deviation,
+    weakest_mode_ratio,
     write_coloured_ply,
 )
 
@@ -362,6 +363,25 @@ def test_deviation_map_figure(deviations: tuple[np.ndarray, np.ndarray]) -> None
         assert ax.get_aspect() == 1.0
         assert len(ax.collections[0].get_array()) == len(x)
         assert [t.get_text() for t in ax.texts] == ["1"]
+
+
+def test_weakest_mode_ratio_free_and_fixed_motions(scan: dict, ransac_fit: dict) -> None:
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(-20, 20, (2000, 2))
+    up = np.tile([0.0, 0.0, 1.0], (2000, 1))
+    plane = np.column_stack([xy, np.zeros(2000)])
+    assert weakest_mode_ratio(plane, up) < 1e-12  # two slides and a turn are free
+    d = rng.normal(size=(3000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    assert weakest_mode_ratio(300.0 + 20.0 * d, d) < 1e-12  # a sphere turns freely
+    # a box's corner: three planes at right angles fix every motion
+    corner = np.vstack([np.column_stack([rng.uniform(0, 20, (3000, 2)), np.zeros(3000)])[:, p]
+                        for p in ([0, 1, 2], [0, 2, 1], [2, 0, 1])])
+    normals = np.repeat(np.eye(3)[[2, 1, 0]], 3000, axis=0)
+    assert weakest_mode_ratio(corner, normals) > 0.05
+    # the asymmetric part scanned from above is held firmly; the quick capture's flat top is
+    # not (tests/test_report_quick.py)
+    assert not ransac_fit["ambiguous"] and ransac_fit["weakest_mode_ratio"] > 0.01
 
 
 def test_a_symmetric_patch_is_flagged_ambiguous() -> None:

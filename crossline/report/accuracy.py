@@ -352,10 +352,13 @@ def _nominal_comparison(P: np.ndarray, mesh: Path, tol: dict, met: dict) -> tupl
     V, F = nm.load_nominal(mesh)
     al = nm.align_to_nominal(P, V, F, seed=int(met["seed"]))
     if al["ambiguous"]:
+        why = (f"{al['rival_poses']} other pose(s) fit the scanned surface as well but place it "
+               "elsewhere on the part" if al["rival_poses"] else
+               f"the scanned surface fixes one motion of the part {al['weakest_mode_ratio']:.1e} "
+               f"as firmly as another (under {nm.WEAK_MODE_RATIO:g}): it could slide on its drawing")
         raise CrosslineError(
-            f"{mesh.name}: the alignment is ambiguous: {al['rival_poses']} other pose(s) fit the "
-            "scanned surface as well but place it elsewhere on the part (a symmetric part, or "
-            "too little of it scanned): scan more of the part")
+            f"{mesh.name}: the alignment is ambiguous: {why} (a symmetric part, or too little of "
+            "it scanned): scan more of the part, or give a datum")
     T = np.asarray(al["T_nominal_cloud"], dtype=np.float64)
     Q = P @ T[:3, :3].T + T[:3, 3]
     dev = nm.signed_deviation(Q, V, F)

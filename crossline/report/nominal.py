@@ -48,6 +48,7 @@ __all__ = [
     "load_nominal",
     "signed_deviation",
     "support_plane",
+    "weakest_mode_ratio",
     "write_coloured_ply",
 ]
 
@@ -55,6 +56,9 @@ MESH_SUFFIXES = (".stl", ".ply", ".obj")
 COLOUR_MAP = "coolwarm"
 TUKEY_C = 4.685  # Tukey biweight constant: 95 % efficiency at Gaussian residuals
 MAD_TO_SIGMA = 1.4826
+# the fit's weakest motion constrained less than this fraction as strongly as its strongest
+# (rotations scaled by the cloud's RMS radius): the surface lets the pose slide along it
+WEAK_MODE_RATIO = 1e-3
 # the identity and half turns about x, y and z: the symmetric poses a coarse match may land in
 _HALF_TURNS = (np.eye(3), np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]),
                np.diag([-1.0, -1.0, 1.0]))
@@ -360,7 +364,11 @@ def align_to_nominal(
     of the part moves by 1e-7 mm. ``fitness`` is the share of points within the final
     Tukey scale and ``inlier_rmse_mm`` their RMS distance to the mesh. ``ambiguous``: without
     a datum, other coarse poses (``rival_poses``) fitted within 2 % as many points as well but
-    put the points more than a voxel elsewhere: the scanned surface does not fix the pose.
+    put the points more than a voxel elsewhere, or the fitted surface fixes some motion of
+    the pose less than ``WEAK_MODE_RATIO`` as firmly as another (``weakest_mode_ratio``, see
+    :func:`weakest_mode_ratio`: a nearly flat patch seen alone slides on its drawing, and
+    which rival RANSAC happens to draw there is chance): the scanned surface does not fix
+    the pose.
     """
     p_all = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     p_all = p_all[np.isfinite(p_all).all(1)]
@@ -385,20 +393,44 @@ def align_to_nominal(
         p = p_all
     # a datum wrong by a degree and a millimetre is still well within this gate
     T, k, iterations = _refine(p, surface, T0, 3.0 * voxel, max_iterations)
-    d, _, _ = surface.signed(_transform(T, p))
+    x = _transform(T, p)
+    d, _, _ = surface.signed(x)
     inl = np.abs(d) <= k
+    _, tri = surface.closest(x[inl])
+    weak = weakest_mode_ratio(x[inl], surface.normals[tri])
     return {
         "T_nominal_cloud": T,
         "fitness": float(inl.mean()),
         "inlier_rmse_mm": float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else float("nan"),
         "coarse": coarse,
-        "ambiguous": rivals > 0,
+        "ambiguous": rivals > 0 or (initial is None and weak < WEAK_MODE_RATIO),
         "rival_poses": int(rivals),
+        "weakest_mode_ratio": weak,
         "iterations": int(iterations),
         "tukey_scale_mm": float(k),
         "voxel_mm": voxel,
         "n_points": len(p),
     }
+
+
+def weakest_mode_ratio(points: np.ndarray, normals: np.ndarray) -> float:
+    """How firmly a surface fixes a rigid fit: the smallest over the largest eigenvalue of the
+    point-to-plane information (Gelfand et al., geometrically stable sampling for ICP, 2003).
+
+    Each point (N, 3) on its unit surface normal (N, 3) constrains the motion (rotation about
+    the points' centroid, scaled by their RMS radius, and translation) by
+    ``[(p - c) x n / L, n]``; a plane leaves three motions free (ratio 0), a sphere's cap three
+    turns, a cylinder two.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    n = np.asarray(normals, dtype=np.float64)
+    if len(p) < 6:
+        return 0.0
+    c = p.mean(0)
+    lever = max(float(np.sqrt(np.mean(np.sum((p - c) ** 2, axis=1)))), 1e-12)
+    J = np.hstack([np.cross(p - c, n) / lever, n])
+    w = np.linalg.eigvalsh(J.T @ J)
+    return float(max(w[0], 0.0) / w[-1]) if w[-1] > 0 else 0.0
 
 
 # ----------------------------------------------------------------------------- deviation
