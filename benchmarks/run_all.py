@@ -107,10 +107,17 @@ def collect() -> str:
 
 def main(argv: list[str]) -> int:
     failed: list[str] = []
+    if {"-h", "--help"} & set(argv):
+        print(__doc__)
+        return 0
     if "--collect" not in argv:
         scripts = sorted(HERE.glob("bench_*.py"))
         if argv:
             scripts = [s for s in scripts if any(n in s.stem for n in argv)]
+            if not scripts:  # a typo would otherwise run nothing and rewrite the page
+                print(f"no benchmark named like {' '.join(argv)}; they are: "
+                      + ", ".join(s.stem for s in sorted(HERE.glob("bench_*.py"))))
+                return 2
         for script in scripts:
             print(f"=== {script.name}", flush=True)
             t0 = time.perf_counter()
