@@ -30,6 +30,7 @@ import numpy as np
 
 from crossline import __version__
 from crossline.errors import CrosslineError
+from crossline.geometry import make_transform
 from crossline.io.atomic import atomic_path, to_jsonable, write_json
 from crossline.io.settings import read_settings
 
@@ -952,9 +953,8 @@ def _validation(inputs: dict, truth: dict, rig: Any, met: dict,
         h = {"chosen": mt.transform_error(np.asarray(he["T_tool_cam"]), Tt, vol),
              "method": he.get("method")}
         if R is not None:
-            R4 = np.eye(4)
-            R4[:3, :3] = R
-            h["chosen"]["frame_free"] = mt.transform_error(np.asarray(he["T_tool_cam"]) @ R4, Tt, vol)
+            h["chosen"]["frame_free"] = mt.transform_error(
+                np.asarray(he["T_tool_cam"]) @ make_transform(R, np.zeros(3)), Tt, vol)
         for name, m in sorted((he.get("methods") or {}).items()):
             Xm = m.get("T_tool_cam", m.get("X")) if isinstance(m, dict) else None
             if Xm is not None and np.asarray(Xm).shape == (4, 4):

@@ -28,9 +28,10 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.optimize import least_squares
 from scipy.spatial import ConvexHull, QhullError
 
-from crossline.geometry import angle_between, fit_sphere, plane_distance
+from crossline.geometry import angle_between, fit_sphere, plane_distance, rotation_angle, rotvec_to_matrix
 from crossline.scan.labels import nearest_in_column
 
 __all__ = [
@@ -989,10 +990,6 @@ def frame_rotation(est: Any, true: Any, volume_cam: np.ndarray) -> np.ndarray:
     ray, and the laser planes and hand-eye, found through the same camera, carry the same
     rotation, so measured points in the arm's frame do not feel it.
     """
-    from scipy.optimize import least_squares
-
-    from crossline.geometry import rotvec_to_matrix
-
     X = np.asarray(volume_cam, dtype=np.float64)
     target = true.project(X)
 
@@ -1006,8 +1003,6 @@ def camera_error(est: Any, true: Any, volume_cam: np.ndarray) -> dict[str, Any]:
     """Projection difference (px) of the estimated camera against the true one over the volume,
     the same after the best rotation of its frame (``frame_free``: what bends rays), and the
     parameter differences (estimated minus true)."""
-    from crossline.geometry import rotation_angle
-
     duv = est.project(volume_cam) - true.project(volume_cam)
     dn = np.linalg.norm(duv, axis=1)
     R = frame_rotation(est, true, volume_cam)
@@ -1073,7 +1068,7 @@ def laser_plane_error(
 def transform_error(T_est: np.ndarray, T_true: np.ndarray, points: np.ndarray) -> dict[str, Any]:
     """Rigid transform against the true one: rotation angle, translation, and the RMS / max
     displacement of ``points`` (M, 3) mapped by each (e.g. the measured volume in ``cam``)."""
-    from crossline.geometry import invert_transform, rotation_angle, transform_points
+    from crossline.geometry import invert_transform, transform_points
 
     T_est = np.asarray(T_est, dtype=np.float64)
     T_true = np.asarray(T_true, dtype=np.float64)

@@ -626,7 +626,7 @@ def _gauss_windows_nb(flat, H, col, r0, r1, ext, nbg):  # pragma: no cover - com
         # Where the stripe's tail runs into the frame's border, the window takes it all, up to
         # the border, and the background comes from the other side: cut at the reach less the
         # background pixels, the tail's pixels would be the background and pull the centre
-        # off the border (random rig 0's ball: 20-45 um inside the truth within 10 px of it)
+        # off the border (random rig 0's ball, whose B stripe runs along the window's top)
         reach = max(ext, (r1[i] - r0[i] + 1) // 2)
         if gu // 2 - nbg < reach and not (i > 0 and col[i - 1] == c):
             lo = 0
@@ -822,10 +822,8 @@ def _gauss_pairs_nb(flat, H, col, r0, r1, lo_w, hi_w, near, nbg, noise2, rel2, f
     the other stripe's tail, which pushes the two apart (0.09 px each at 10 px apart, sigma
     2). Starts from the single fits in ``a_io, c_io, s_io`` and replaces them where the joint
     fit converges within 1.5 px of them; pairs with a merged run are left as they are.
-    Returns which centres were refitted.
     """
     k = col.size
-    done = np.zeros(k, np.bool_)
     p = np.zeros(6)
     J = np.zeros(6)
     d = np.zeros(6)
@@ -835,7 +833,7 @@ def _gauss_pairs_nb(flat, H, col, r0, r1, lo_w, hi_w, near, nbg, noise2, rel2, f
     for i in range(k - 1):
         if col[i + 1] != col[i] or r0[i + 1] - r1[i] - 1 >= near or not (ok_io[i] and ok_io[i + 1]):
             continue
-        if (flags[i] | flags[i + 1]) & 1:  # a merged run is two stripes already
+        if (flags[i] | flags[i + 1]) & MERGED:  # a merged run is two stripes already
             continue
         if i > 0 and col[i - 1] == col[i] and r0[i] - r1[i - 1] - 1 < near:
             continue
@@ -934,9 +932,6 @@ def _gauss_pairs_nb(flat, H, col, r0, r1, lo_w, hi_w, near, nbg, noise2, rel2, f
             continue
         a_io[i], c_io[i], s_io[i] = p[0], p[1], p[2]
         a_io[i + 1], c_io[i + 1], s_io[i + 1] = p[3], p[4], p[5]
-        done[i] = True
-        done[i + 1] = True
-    return done
 
 
 @_jit
