@@ -37,6 +37,8 @@ AREAS: dict[str, tuple[str, str]] = {
     "scan": ("Scan stages: centre error, labels, speed as ratios to the decode bound",
              "python benchmarks/bench_scan.py"),
     "scale": ("Long scans: time and memory per stage", "python benchmarks/bench_scale.py"),
+    "stripe_pairs": ("Stripe centres beside another stripe and the border",
+                     "python benchmarks/bench_stripe_pairs.py"),
     "refine": ("Pose refinement over arm draws", "python benchmarks/bench_refine.py"),
     "refine_bias": ("Pose refinement: bias", "python benchmarks/bench_refine_bias.py"),
     "render": ("Rendering", "python benchmarks/bench_render.py"),
