@@ -179,11 +179,32 @@ def test_scan_without_stripes_is_an_error(tmp_path):
     assert not out.exists()
 
 
-def test_no_a_frame_is_an_error_and_writes_nothing(tmp_path):
+def test_no_a_frame_is_labelled_by_the_order_of_the_cross(tmp_path):
+    """Without A frames the AB frames are labelled from the calibration; each label is right."""
+    truth = S.make_capture(tmp_path / "cap", n_frames=6, states=["B", "AB"] * 3)
+    cj, lj, hj = S.write_calibration(tmp_path / "cal")
+    st = tmp_path / "s.parquet"
+    run_extract_stripes(tmp_path / "cap", "plate", st)
+    out = tmp_path / "p.parquet"
+    meta = run_triangulate(tmp_path / "cap", "plate", st, cj, lj, hj, out)
+    assert meta["counts"]["labelled_by_order"]["frames"] == 3
+    p = pd.read_parquet(out)
+    ab = p[p["lasers"] == "AB"]
+    assert set(ab["laser"].astype(str)) == {"A", "B"}
+    for laser, g in ab.groupby(ab["laser"].astype(str)):
+        cols = g["u"].to_numpy().astype(int) - S.WINDOW[0]
+        own = np.array([truth["v"][int(f)][laser][c] for f, c in zip(g["frame"], cols, strict=True)])
+        assert np.abs(g["v"].to_numpy() - own).max() < 1.0, laser
+
+
+def test_ab_frames_with_one_laser_plane_are_an_error_and_write_nothing(tmp_path):
     S.make_capture(tmp_path / "cap", n_frames=6, states=["B", "AB"] * 3)
     cj, lj, hj = S.write_calibration(tmp_path / "cal")
     st = tmp_path / "s.parquet"
     run_extract_stripes(tmp_path / "cap", "plate", st)
+    planes = json.loads(Path(lj).read_text())
+    planes["B"] = planes["A"]  # parallel planes: no crossing line, no order
+    Path(lj).write_text(json.dumps(planes))
     out = tmp_path / "p.parquet"
     with pytest.raises(StageError, match="scan plate: has AB frames but no A frame"):
         run_triangulate(tmp_path / "cap", "plate", st, cj, lj, hj, out)

@@ -42,6 +42,7 @@ import numpy as np
 from crossline.errors import StageError
 from crossline.jit import jit
 from crossline.scan.centreline import link_traces, trace_position
+from crossline.scan.cross_order import CrossOrder
 from crossline.scan.stripes import MERGED
 
 __all__ = ["DROP_REASONS", "Disambiguator", "bridge_gaps", "disambiguate", "nearest_in_column",
@@ -52,6 +53,8 @@ DROP_REASONS = ("off_frame", "merged", "no_reference", "unmatched", "ambiguous",
 _BIG = 1.0e6  # key = u * _BIG + v orders centres by column, then row (|v| < 1e5 px)
 ISLAND_MAX = 3  # longest run of one label inside a stripe trace of the other that is dropped
 ISOLATED_MAX = 8  # the same between centres left unlabelled (the end trimming would take most of it)
+FOLLOW_MIN = 0.3  # share of a stripe piece the frames before label for it to follow them
+FOLLOW_AGREE = 0.8  # and the share of those labels that must agree
 
 
 def nearest_in_column(
@@ -205,8 +208,10 @@ class Disambiguator:
     predict: bool = True
     bridge_columns: int = 0
     track: bool = False
+    order: CrossOrder | None = None
     refs: dict[str, list[_Ref]] = field(default_factory=lambda: {"A": [], "B": []})
     tracked: dict[str, _Ref] = field(default_factory=dict)
+    ordered: dict[str, list[_Ref]] = field(default_factory=lambda: {"A": [], "B": []})
     counts: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -224,6 +229,8 @@ class Disambiguator:
         c.setdefault("labelled_in_AB", {"A": 0, "B": 0})
         c.setdefault("dropped", dict.fromkeys(DROP_REASONS, 0))
         c.setdefault("AB_frames_without_reference", {"A": 0, "B": 0})
+        if self.order is not None:
+            c.setdefault("labelled_by_order", {"frames": 0, "by_order": 0, "by_previous_frames": 0})
 
     def _reference(self, laser: str, frame: int) -> tuple[np.ndarray, np.ndarray] | None:
         """The laser's reference centres for ``frame`` (predicted if asked), or None if stale.
@@ -252,7 +259,7 @@ class Disambiguator:
         if not self.predict or len(refs) < 2 or last.u.size == 0:
             return last.u, last.v
         prev = refs[-2]
-        if last.frame - prev.frame > 2 * self.max_frame_gap:
+        if last.frame - prev.frame > 2 * self.max_frame_gap or prev.u.size == 0:
             return last.u, last.v
         j, d = nearest_in_column(prev.u, prev.v, last.u, last.v)
         # the same stripe in the two frames: it may move up to T px per frame between them
@@ -290,13 +297,28 @@ class Disambiguator:
         # an AB frame
         ref = {laser: self._reference(laser, frame) for laser in ("A", "B")}
         missing = [laser for laser, r in ref.items() if r is None]
-        if missing:
-            for laser in missing:
-                c["AB_frames_without_reference"][laser] += 1
+        for laser in missing:
+            c["AB_frames_without_reference"][laser] += 1
+        if missing and self.order is None:
             c["dropped"]["no_reference"] += n
             return label, dist
         merged = (flags & MERGED) != 0
         c["dropped"]["merged"] += int(merged.sum())
+        if missing:  # no single-laser frame to go by: the order of the cross decides
+            return self._by_order(frame, u, v, merged, label, dist)
+        lab, d = self._match(u, v, merged, ref)
+        if self.track:  # this frame's labelled stripes: the freshest reference for the next
+            for laser, code in (("A", 1), ("B", 2)):
+                mine = lab == code
+                self.tracked[laser] = _sorted_ref(frame, u[mine], v[mine], self.bridge_columns)
+        return self._finish(lab, d, label, dist)
+
+    def _match(self, u: np.ndarray, v: np.ndarray, merged: np.ndarray,
+               ref: dict[str, tuple[np.ndarray, np.ndarray] | None],
+               count: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Codes (1 = A, 2 = B, 0 = dropped) and distances of AB centres matched to references."""
+        c = self.counts if count else {"dropped": dict.fromkeys(DROP_REASONS, 0)}
+        n = u.size
         (ua, va), (ub, vb) = ref["A"], ref["B"]
         ja, da = nearest_in_column(ua, va, u, v)
         jb, db = nearest_in_column(ub, vb, u, v)
@@ -331,10 +353,68 @@ class Disambiguator:
         inconsistent = _trace_minority(u, v, lab, merged)
         c["dropped"]["inconsistent"] += int(inconsistent.sum())
         lab = np.where(inconsistent, 0, lab)
-        if self.track:  # this frame's labelled stripes: the freshest reference for the next
-            for laser, code in (("A", 1), ("B", 2)):
-                mine = lab == code
-                self.tracked[laser] = _sorted_ref(frame, u[mine], v[mine], self.bridge_columns)
+        return lab, d
+
+    def _by_order(self, frame: int, u: np.ndarray, v: np.ndarray, merged: np.ndarray,
+                  label: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Label an AB frame without single-laser references: the cross's order and the frames before.
+
+        The stripe pieces of :meth:`CrossOrder.labels` are one laser each. A piece whose
+        centres the latest AB frames labelled (carried on as references) for at least
+        ``FOLLOW_MIN`` of it, by ``FOLLOW_AGREE`` or more one way, keeps that laser: once
+        told apart, the stripes are followed from frame to frame as they move, where the order
+        of the cross can flip (a surface turned past the crossing line) or be silent (one
+        branch hidden). Any other piece takes the label of the order, or none. A centre whose
+        own reference label contradicts its piece's is dropped as inconsistent.
+        """
+        c = self.counts
+        co = c["labelled_by_order"]
+        co["frames"] += 1
+        n = u.size
+        by_order, piece = self.order.labels(u, v, ~merged)
+        ref = {laser: self._ordered_reference(laser, frame) for laser in ("A", "B")}
+        if all(r is not None for r in ref.values()):
+            prior, d = self._match(u, v, merged, ref, count=False)
+        else:
+            prior, d = np.zeros(n, np.int64), np.full(n, np.inf)
+        lab = np.zeros(n, np.int64)
+        has = piece >= 0
+        if has.any():
+            n_piece = int(piece.max()) + 1
+            pa = np.bincount(piece[has], prior[has] == 1, n_piece)
+            pb = np.bincount(piece[has], prior[has] == 2, n_piece)
+            size = np.bincount(piece[has], minlength=n_piece)
+            follow = (pa + pb >= FOLLOW_MIN * size)
+            code_prior = np.where(follow & (pa >= FOLLOW_AGREE * (pa + pb)), 1,
+                                  np.where(follow & (pb >= FOLLOW_AGREE * (pa + pb)), 2, 0))
+            code_order = np.zeros(n_piece, np.int64)
+            np.maximum.at(code_order, piece[has], by_order[has])
+            code = np.where(code_prior > 0, code_prior, code_order)
+            lab[has] = code[piece[has]]
+            co["by_previous_frames"] += int(((code_prior[piece[has]] > 0) & (lab[has] > 0)).sum())
+            co["by_order"] += int(((code_prior[piece[has]] == 0) & (lab[has] > 0)).sum())
+        contra = (lab > 0) & (prior > 0) & (prior != lab)
+        c["dropped"]["inconsistent"] += int(contra.sum())
+        lab[contra] = 0
+        c["dropped"]["unmatched"] += int(((lab == 0) & ~merged & ~contra).sum())
+        for laser, code in (("A", 1), ("B", 2)):
+            mine = lab == code
+            self.ordered[laser] = [*self.ordered[laser][-1:],
+                                   _sorted_ref(frame, u[mine], v[mine], self.bridge_columns)]
+        d = np.where(prior == lab, d, np.nan)
+        return self._finish(lab, d, label, dist)
+
+    def _ordered_reference(self, laser: str, frame: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """The laser's stripe in the latest AB frames labelled without references, moved on."""
+        refs = self.ordered[laser]
+        if not refs or frame - refs[-1].frame > self.max_frame_gap:
+            return None
+        return self._predicted(refs, frame)
+
+    def _finish(self, lab: np.ndarray, d: np.ndarray, label: np.ndarray,
+                dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Labels and distances from codes; count them."""
+        c = self.counts
         label[lab == 1] = "A"
         label[lab == 2] = "B"
         dist[lab > 0] = d[lab > 0]

@@ -29,6 +29,7 @@ from crossline.geometry import transform_points
 from crossline.io.atomic import atomic_path, write_json
 from crossline.laser import LaserPlanes
 from crossline.scan.centreline import blocked_ends, link_traces, smooth_along, trace_position
+from crossline.scan.cross_order import CrossOrder
 from crossline.scan.labels import Disambiguator, check_pattern, reference_gap
 from crossline.scan.stripes import MERGED, read_stripes_meta
 
@@ -185,9 +186,17 @@ def run_triangulate(
         raise StageError(f"capture {cap.root}: no scan {scan!r} (known: {sorted(cap.scans)})")
     sc = cap.scans[scan]
     rig_lasers = tuple(getattr(cap.rig, "lasers", ("A", "B")))
-    check_pattern(sc.lasers, scan)
     cam, planes = _load_calibration(camera_json, lasers_json)
     _check_lasers(sc.lasers, scan, rig_lasers, planes, lasers_json)
+    order = None
+    if planes.B is not None and "AB" in set(map(str, sc.lasers)):
+        try:  # AB frames without A and B frames before them: the order of the cross tells
+            order = CrossOrder.from_calibration(cam, planes)
+        except ValueError as exc:
+            log.warning("scan %s: AB frames without single-laser frames cannot be labelled (%s)",
+                        scan, exc)
+    if order is None:
+        check_pattern(sc.lasers, scan)
     T_tool_cam = load_handeye(handeye_json)
     T_base_cam = sc.T_base_tool @ T_tool_cam  # each frame's camera pose, once for the scan
     try:
@@ -206,7 +215,7 @@ def run_triangulate(
     if max_frame_gap is None:  # one dropped or repeated frame is tolerated
         max_frame_gap = reference_gap(pat["period"]) + 1
     dis = Disambiguator(threshold_px, max_frame_gap, ambiguity_px, predict, bridge_columns,
-                        track_references)
+                        track_references, order)
     pf = pq.ParquetFile(stripes)
     next_pos = 0  # frames before this scan position have been given to the disambiguator
     n_points = 0
