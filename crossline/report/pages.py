@@ -1118,6 +1118,11 @@ def page_validation(m: dict[str, Any], plots: dict[str, Any]) -> list[Figure]:
             d = t.get("deviation_to_true_mesh")
             if not d:
                 continue
+            if not d.get("n"):  # the cloud is nowhere near the part (a calibration far off)
+                rows.append([name, "signed distance to true mesh",
+                             f"no point within {fmt(d.get('max_distance_mm'), 'mm', 1)} of the part "
+                             f"(of {fmt(d.get('n_total'))})"])
+                continue
             rows.append([name, "signed distance to true mesh: mean / RMS",
                          f"{fmt(d['mean_mm'], 'mm', signed=True)} / {fmt(d['rms_mm'], 'mm')}"])
             rows.append(["", "|distance| 95th percentile / max",
@@ -1152,7 +1157,8 @@ def page_validation(m: dict[str, Any], plots: dict[str, Any]) -> list[Figure]:
     figs = [p.fig]
     for name, s in m["scans"].items():
         sp = plots["scans"].get(name, {})
-        if s["artefact"] == "freeform" and sp.get("deviation") is not None and sp.get("top"):
+        if (s["artefact"] == "freeform" and sp.get("deviation") is not None
+                and len(sp["deviation"]) and sp.get("top")):
             q = Page(m, f"Validation: '{name}' against its true surface")
             d = s["truth"]["deviation_to_true_mesh"]
             q.text(f"Signed distance of each point to the true mesh (positive: outside, towards the "
