@@ -142,6 +142,17 @@ def test_outlier_view_is_skipped_with_its_reason() -> None:
     assert all(v["used"] for k, v in enumerate(views) if k != 2)
 
 
+def test_views_that_fit_no_camera_are_refused() -> None:
+    """Every view's rows in a wrong order (a detector's mislabelling): refused, not calibrated."""
+    grid = (CENTRES + OFFSETS).reshape(len(POSES), BOARD.rows, BOARD.cols, 2)
+    order = np.r_[1:BOARD.rows:2, 0:BOARD.rows:2]  # odd rows first
+    names = [f"v{k}" for k in range(len(POSES))]
+    with pytest.raises(CalibrationError, match=r"the board's points fit no camera: RMS .* px over "
+                       rf"{len(POSES)} views .*\(symmetric {BOARD.cols} x {BOARD.rows}"):
+        solve_views(names, _detections(grid[:, order].reshape(len(POSES), -1, 2)), BOARD,
+                    PAPER.image_size)
+
+
 def test_too_few_usable_views_names_every_view() -> None:
     """Fewer usable views than min_views: an error listing each view and why."""
     names = [f"calibration/camera/view_{k:02d}.png" for k in range(7)]

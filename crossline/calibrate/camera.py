@@ -67,6 +67,7 @@ log = logging.getLogger(__name__)
 
 # a view is never an outlier below this RMS (px): exact or very clean data has tiny medians
 OUTLIER_FLOOR_PX = 0.02
+MAX_RMS_PX = 2.0  # reprojection RMS above which the views fit no camera: a wrong board, not a lens
 VIEW_SETS = ("camera", "all")
 PARAMETERS = CAMERA_PARAMETERS
 DISTORTION = PARAMETERS[4:]
@@ -491,6 +492,13 @@ def solve_views(
         limit = max(outlier_factor * float(np.median(vr)), OUTLIER_FLOOR_PX)
         worst = int(np.argmax(vr))
         if vr[worst] <= limit:
+            if not fit.rms_px <= MAX_RMS_PX:  # every view equally bad: the board, not a view
+                raise CalibrationError(
+                    f"the board's points fit no camera: RMS {fit.rms_px:.2f} px over {len(use)} "
+                    f"views (a sound calibration leaves well under 1 px; refused above "
+                    f"{MAX_RMS_PX:g} px). Check that rig.yaml's board ({board.pattern} "
+                    f"{board.cols} x {board.rows}, spacing {board.spacing:g} mm) is the board in "
+                    f"the images")
             if distortion == "select":
                 pts = np.array([detections[i].points for i in use])
                 fit, _ = select_distortion(pts, board, image_size, fit, window or (0, 0, *image_size),
