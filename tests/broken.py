@@ -127,11 +127,12 @@ def break_capture(good: Path, dest: Path, fault: str) -> Path:
         for png in boards + sorted((cal / "handeye").glob("*.png")):
             _blank_png(png, 128)
     elif fault == "scan_faults":
-        # gauge: every A frame switched to B (AB frames have no A reference);
-        # plate: lasers never reach the part (frames black)
+        # gauge: every frame's laser state written as off (a lost trigger log), so no centre
+        # has a laser; plate: lasers never reach the part (frames black)
         frames = dest / "scans/gauge/frames.csv"
         rows = frames.read_text().splitlines()
-        _rewrite(frames, "\n".join(r.replace(",A,", ",B,") for r in rows) + "\n")
+        _rewrite(frames, "\n".join(r.replace(",AB,", ",off,").replace(",A,", ",off,")
+                                   .replace(",B,", ",off,") for r in rows) + "\n")
         for png in (dest / "scans/plate/frames").glob("*.png"):
             _blank_png(png, 0)
     elif fault == "degenerate_handeye":

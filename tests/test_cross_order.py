@@ -52,6 +52,8 @@ def _stripes(cam: Camera, planes: LaserPlanes, n_s: np.ndarray, p_s: np.ndarray)
         u_all.append(cols)
         v_all.append(v)
         lab.append(np.full(cols.size, code))
+    if not u_all:
+        return np.empty(0), np.empty(0), np.empty(0, int)
     u, v, lab = np.concatenate(u_all), np.concatenate(v_all), np.concatenate(lab)
     # where the stripes come within 6 px in a column the extractor finds one merged run
     o = np.lexsort((v, u))
@@ -124,3 +126,33 @@ def test_all_ab_scan_is_labelled_and_followed():
     assert c["labelled_by_order"]["by_previous_frames"] > c["labelled_by_order"]["by_order"]
     dropped = sum(c["dropped"].values())
     assert c["labelled"]["A"] + c["labelled"]["B"] + dropped == c["centres_in"]
+
+
+def test_crossing_out_of_the_window_is_labelled():
+    """No crossing in view: the stripes extended to l meet there, or each goes by its direction."""
+    hits = alone = 0
+    for seed in range(12):
+        rng = np.random.default_rng(100 + seed)
+        cam, planes, X = _rig(rng)
+        co = CrossOrder.from_calibration(cam, planes)
+        p, d = planes.intersection_line()
+        face = -X / np.linalg.norm(X)
+        for shift in np.linspace(-150.0, 150.0, 31):  # the surface nearer or farther
+            P = p + ((X + shift * face - p) @ face) / (d @ face) * d  # L meets the surface here
+            x = cam.project(P[None])[0]
+            if (0 <= x[0] < W and 0 <= x[1] < H) or P[2] <= 20:
+                continue
+            u, v, truth = _stripes(cam, planes, face, X + shift * face)
+            if min((truth == 1).sum(), (truth == 2).sum()) < 50:
+                continue
+            lab, _ = co.labels(u, v, np.ones(u.size, bool))
+            assert not np.any((lab > 0) & (lab != truth)), (seed, shift)
+            hits += int((lab == truth).mean() > 0.9)
+            # one stripe alone (the other off the part): nothing meets it, its direction decides
+            for k in (1, 2):
+                one = truth == k
+                lab, _ = co.labels(u[one], v[one], np.ones(int(one.sum()), bool))
+                assert not np.any((lab > 0) & (lab != k)), (seed, shift, k)
+                alone += int((lab == k).mean() > 0.9)
+            break
+    assert hits >= 6 and alone >= 12

@@ -128,9 +128,11 @@ class CrossOrder:
         each gets a vote; a piece whose votes agree to ``agreement`` or more takes that label.
         Across ``l`` a stripe runs on through the crossing, bent on a curved surface: two
         pieces there are two lasers only if their angle is over half that between the stripes
-        on a surface facing the camera. A piece without votes takes the laser whose stripe on
-        such a surface runs nearer its direction, if nearer by ``direction_margin`` of the
-        angle between the two or more. Centres within ``near_px`` of ``l`` stay undecided.
+        on a surface facing the camera. In a frame where no two pieces meet (the crossing
+        hidden, or out of the window), a piece takes the laser whose stripe on such a surface
+        runs nearer its direction, if nearer by ``direction_margin`` of the angle between the
+        two or more; where some pieces meet, the others stay undecided (a short piece on a ball
+        can run either way). Centres within ``near_px`` of ``l`` stay undecided.
         """
         out = np.zeros(u.size, np.int8)
         piece_of = np.full(u.size, -1, np.int64)
@@ -188,13 +190,13 @@ class CrossOrder:
         total = votes.sum(axis=1)
         code = np.where((total > 0) & (votes[:, 0] >= agreement * total), 1,
                         np.where((total > 0) & (votes[:, 1] >= agreement * total), 2, 0))
-        # a piece that meets no branch of the other laser (the crossing hidden or out of view):
-        # its direction, if clearly nearer one laser's than the other's on a surface facing
-        # the camera
+        # no two pieces meet (the crossing hidden or out of view): each piece's direction, if
+        # clearly nearer one laser's than the other's on a surface facing the camera
         to_a, to_b = _circ(angle, self.angles[0]), _circ(angle, self.angles[1])
         margin = direction_margin * _circ(*self.angles)
         by_dir = np.where(to_b - to_a >= margin, 1, np.where(to_a - to_b >= margin, 2, 0))
-        code = np.where((total == 0) & line, by_dir, code)
+        if not (total > 0).any():  # no crossing seen in this frame: the directions alone
+            code = np.where(line, by_dir, code)
         off_l = np.abs(h) > near_px
         out[idx[off_l]] = code[piece[off_l]]
         piece_of[idx[off_l]] = piece[off_l]
