@@ -337,3 +337,14 @@ def test_island_on_a_stripe_flagged_merged_here_and_there_is_still_an_island():
     # a labelled stripe interrupted by merged columns is one run, not islands
     lab2 = np.where(merged, 0, 2)
     assert not _trace_minority(u, v, lab2, merged).any()
+
+
+def test_laser_frame_without_centres_then_with_centres():
+    """An A frame with no centre, then an A frame with centres: the next AB frame is labelled
+    from the latter, not predicted from an empty frame (which raised IndexError)."""
+    states = ["A", "B", "AB", "A", "B", "AB"]
+    t = build(states, drop_frames=(0,))
+    label, _, counts = run(states, t)
+    ab = (t["frame"] == 5) & (sep(t) > 10)
+    assert ab.sum() > 200 and np.all(label[ab] == t["truth"][ab])
+    assert counts["frames"]["A"] == 2

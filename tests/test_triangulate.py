@@ -110,6 +110,7 @@ def test_stages_end_to_end_on_analytic_capture(analytic, tmp_path, extractor):
     assert side == read_points_meta(pts) == pm
     c = pm["counts"]
     assert c["centres_in"] == meta["counts"]["centres"]
+    assert "labelled_by_order" not in c  # A and B frames there: the paper's rule, as before
     dropped = sum(c["dropped"].values())
     trimmed = sum(c["trimmed"].values())
     assert c["labelled"]["A"] + c["labelled"]["B"] + dropped == c["centres_in"]

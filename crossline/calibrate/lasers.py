@@ -332,6 +332,18 @@ def stripe_points(
     ok = (c["flags"] & ~np.uint8(4)) == 0  # saturation of the difference is harmless
     col, v, width = c["u"][ok], c["v"][ok], c["width"][ok]
     n_centres = int(ok.sum())
+    if albedo is not None and len(col):
+        # a centre must stand on its own data: the albedo gain lifts the dark class's noise
+        # with its stripe, and runs of that noise alone cross the threshold; the raw difference
+        # at the centre (3 x 3 pixels) must stand NOISE_K sigmas above the noise
+        iu, iv = (col, v) if axis == "column" else (v, col)
+        iu = np.round(iu).astype(int)
+        iv = np.round(iv).astype(int)
+        h_img, w_img = diff_f.shape
+        raw = np.max([diff_f[np.clip(iv + dv, 0, h_img - 1), np.clip(iu + du, 0, w_img - 1)]
+                      for du in (-1, 0, 1) for dv in (-1, 0, 1)], axis=0)
+        strong = raw > floor / scale
+        col, v, width = col[strong], v[strong], width[strong]
     # each centre's window: its run ± pad ± background pixels
     half = 0.5 * width + PAD_PX + 3
     reach = int(np.ceil(half.max())) if len(half) else 0

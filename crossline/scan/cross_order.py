@@ -1,8 +1,8 @@
 """Which laser made each stripe of an AB frame without single-laser frames: the order of the cross.
 
 The paper tells the two stripes of an AB frame apart by the A and B frames before it. A
-scanner that lights both lasers in every frame (pattern ``AB`` only), or the first AB frames
-of a scan, have no such frames. Geometry then decides, from the calibration alone.
+scanner that lights both lasers in every frame (pattern ``AB`` only), or a scan whose A or
+B frames are missing, has no such frames. Geometry then decides, from the calibration alone.
 
 The two laser planes meet in a line ``L``; its image ``l`` (a straight line in undistorted
 coordinates) passes through the crossing of the two stripes on any surface. On each side of
@@ -11,19 +11,25 @@ order around it that does not depend on the surface, as long as the surface's ta
 does not pass through ``L`` (where the two stripes would lie on one another): the pencil of
 planes through ``L`` meets the tangent plane in the pencil of lines through the crossing,
 and a projective map of pencils keeps their cyclic order. On a plane facing the camera the
-order is computed once from the calibration (the sign ``sigma``); along any line parallel
-to ``l`` at signed distance ``h``, the branch of laser A then lies at ``s_A`` with
-``sign((s_A - s_B) h) = sigma``, ``s`` the position along ``l``. The stripes cannot cross
-each other away from ``l``, so this holds wherever both are seen at the same ``h``, however
-far from the crossing, and whether or not the crossing itself is in the window.
+order is computed once from the calibration: the stripe at the smaller angle from ``l`` is A
+where ``sigma`` > 0, B where it is < 0.
 
-The order flips for a surface turned so far that its normal passes perpendicular to ``L``:
-the true surface is then the less plausible reading of the image (for the random rigs, a
-turn of 33-58 deg from facing the camera, depending on the angle between ``L`` and the
-viewing ray). The labels are therefore taken per stripe trace, by a clear majority of the
-lines where both stripes are seen; a trace with too few such lines, or a split vote, stays
-unlabelled, and :class:`~crossline.scan.labels.Disambiguator` carries labels from frame to
-frame where this order is silent and drops centres where the two disagree.
+Per AB frame, the centres are linked into traces and each trace split by the side of ``l``
+it lies on; a piece long and straight enough over the part nearest ``l`` is a line there.
+Two pieces whose lines meet ``l`` at one point are branches of one crossing, seen or out of
+the window; at clearly different angles they are the two lasers, in the order ``sigma``
+gives. Across ``l`` a stripe runs on through the crossing, bent where the surface is curved,
+so two pieces on opposite sides count as two lasers only if their angle is more than half
+the angle between the stripes on a surface facing the camera. Where no two pieces meet in a
+frame (the crossing hidden), each piece takes the laser whose stripe on such a surface runs
+nearer its direction, if clearly nearer.
+
+The order flips for a surface turned so far that its tangent plane passes through ``L``
+(both stripes then lie along ``l``): the true surface is then the less plausible reading of
+the image (for the random rigs, a turn of 33-58 deg from facing the camera, depending on the
+angle between ``L`` and the viewing ray). So a piece's votes must agree, and
+:class:`~crossline.scan.labels.Disambiguator` follows the stripes from frame to frame once
+they are told apart: a piece the frames before label keeps that label.
 """
 
 from __future__ import annotations
@@ -37,6 +43,8 @@ from crossline.laser import LaserPlanes
 from crossline.scan.centreline import link_traces, trace_position
 
 __all__ = ["CrossOrder"]
+
+MIN_ANGLE_DEG = 5.0  # the stripes' image directions on a surface facing the camera must differ
 
 
 def _angle_from_l(t: np.ndarray, x: np.ndarray, along: np.ndarray, across: np.ndarray) -> float:
@@ -73,6 +81,8 @@ class CrossOrder:
             raise ValueError("the lasers' crossing line is not in front of the camera")
         q0, q1 = p, p + d
         a, b = q0[:2] / q0[2], q1[:2] / q1[2]
+        if np.linalg.norm(b - a) < 1e-12:
+            raise ValueError("the lasers' crossing line passes through the camera: its image is a point")
         along = (b - a) / np.linalg.norm(b - a)
         across = np.array([-along[1], along[0]])
         # the image point of l nearest the principal point, where a scanner's cross is meant to
@@ -87,7 +97,7 @@ class CrossOrder:
         n_face = -X / np.linalg.norm(X)  # a surface facing the camera at X
         angles = tuple(_angle_from_l(np.cross(planes[k].normal, n_face), X, along, across)
                        for k in ("A", "B"))
-        if abs(angles[0] - angles[1]) < np.radians(1.0):
+        if _circ(*angles) < np.radians(MIN_ANGLE_DEG):
             raise ValueError("the two stripes run the same way in the image: no order to tell them apart")
         # the angle from l falls as its cotangent rises: A first along l where it is smaller
         sigma = 1.0 if angles[0] < angles[1] else -1.0
@@ -119,10 +129,10 @@ class CrossOrder:
 
         Also returns each centre's stripe piece (-1: not usable, or within ``near_px`` of ``l``).
 
-        Centres are linked into traces and each trace cut at ``l`` into pieces; a piece of
-        ``min_points`` centres or more, ``elongation`` times longer than wide over its
-        ``fit_px`` nearest ``l``, is a line there: its angle to ``l`` and the point where it
-        meets ``l``. Two pieces that meet ``l`` at one point (within ``meet_px`` plus
+        Centres are linked into traces and each trace split by the side of ``l`` into
+        pieces; a piece of ``min_points`` centres or more, ``elongation`` times longer than
+        wide over its ``fit_px`` nearest ``l``, is a line there: its angle to ``l`` and the
+        point where it meets ``l``. Two pieces that meet ``l`` at one point (within ``meet_px`` plus
         ``meet_frac`` of the longer extrapolation) are branches of one crossing: at angles
         ``same_deg`` or more apart they are the two lasers, in the order ``sigma`` gives, and
         each gets a vote; a piece whose votes agree to ``agreement`` or more takes that label.

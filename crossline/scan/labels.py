@@ -391,16 +391,21 @@ class Disambiguator:
             np.maximum.at(code_order, piece[has], by_order[has])
             code = np.where(code_prior > 0, code_prior, code_order)
             lab[has] = code[piece[has]]
-            co["by_previous_frames"] += int(((code_prior[piece[has]] > 0) & (lab[has] > 0)).sum())
-            co["by_order"] += int(((code_prior[piece[has]] == 0) & (lab[has] > 0)).sum())
+            followed = np.zeros(n, bool)
+            followed[has] = code_prior[piece[has]] > 0
+        else:
+            followed = np.zeros(n, bool)
         contra = (lab > 0) & (prior > 0) & (prior != lab)
         c["dropped"]["inconsistent"] += int(contra.sum())
         lab[contra] = 0
+        co["by_previous_frames"] += int((followed & (lab > 0)).sum())
+        co["by_order"] += int((~followed & (lab > 0)).sum())
         c["dropped"]["unmatched"] += int(((lab == 0) & ~merged & ~contra).sum())
         for laser, code in (("A", 1), ("B", 2)):
             mine = lab == code
-            self.ordered[laser] = [*self.ordered[laser][-1:],
-                                   _sorted_ref(frame, u[mine], v[mine], self.bridge_columns)]
+            if mine.any():  # a frame without the laser's stripe leaves its last one standing
+                self.ordered[laser] = [*self.ordered[laser][-1:],
+                                       _sorted_ref(frame, u[mine], v[mine], self.bridge_columns)]
         d = np.where(prior == lab, d, np.nan)
         return self._finish(lab, d, label, dist)
 

@@ -189,8 +189,9 @@ def run_triangulate(
     cam, planes = _load_calibration(camera_json, lasers_json)
     _check_lasers(sc.lasers, scan, rig_lasers, planes, lasers_json)
     order = None
-    if planes.B is not None and "AB" in set(map(str, sc.lasers)):
-        try:  # AB frames without A and B frames before them: the order of the cross tells
+    states = set(map(str, sc.lasers))
+    if planes.B is not None and "AB" in states and not {"A", "B"} <= states:
+        try:  # AB frames without A or B frames to go by: the order of the cross tells
             order = CrossOrder.from_calibration(cam, planes)
         except ValueError as exc:
             log.warning("scan %s: AB frames without single-laser frames cannot be labelled (%s)",

@@ -131,6 +131,8 @@ def laser_views(cam: Camera, spec: BoardSpec, laser: LaserSpec, depths: tuple[fl
         depth = depths[i % len(depths)] + (i // len(depths)) * 3.0
         R = rotvec_to_matrix(np.array([0.0, 0.0, np.radians(10.0 * np.sin(1.7 * i + phase))])) @ \
             _tilt(np.radians(axes[i % len(axes)] + phase), np.radians(tilts[i % len(tilts)]))
+        if spec.board.pattern == "chessboard":
+            R = _across_squares(R, nrm)
         T = None
         for dz in np.arange(0.0, 24.0, 3.0):
             z = depth + dz
@@ -149,6 +151,16 @@ def laser_views(cam: Camera, spec: BoardSpec, laser: LaserSpec, depths: tuple[fl
             raise _does_not_fit(f"laser view {i}", spec, depth)
         views.append(T)
     return views
+
+
+def _across_squares(R: np.ndarray, laser_normal: np.ndarray) -> np.ndarray:
+    """The board turned in its plane so that the stripe crosses a chessboard's squares at 22.5 deg
+    to their rows and diagonals, as a user would hold it: a stripe along a row runs on the
+    squares' edges, one along a diagonal on one colour and through the corners."""
+    t = R.T @ np.cross(laser_normal, R[:, 2])  # the stripe's direction in the board frame
+    psi = np.degrees(np.arctan2(t[1], t[0]))
+    delta = psi % 45.0 - 22.5  # the smallest turn that brings it to 22.5 deg modulo 45
+    return R @ rotvec_to_matrix(np.array([0.0, 0.0, np.radians(delta)]))
 
 
 def handeye_views(cam: Camera, preset: RigPreset, n: int, distance: float) -> list[np.ndarray]:
