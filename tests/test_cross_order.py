@@ -164,3 +164,23 @@ def test_crossing_out_of_the_window_is_labelled():
                 alone += int((lab == k).mean() > 0.9)
             break
     assert hits >= 6 and alone >= 12
+
+
+def test_one_stripe_followed_before_the_other_is_seen():
+    """The first frames see stripe A only (B off the part): A is followed from the first frame
+    on, not told from its direction anew in each frame; B joins when it comes into view."""
+    rng = np.random.default_rng(5)
+    cam, planes, X = _rig(rng)
+    dis = Disambiguator(order=CrossOrder.from_calibration(cam, planes), max_frame_gap=2)
+    face = -X / np.linalg.norm(X)
+    wrong = 0
+    for f in range(12):
+        u, v, truth = _stripes(cam, planes, face, X + 0.5 * f * face)
+        if f < 6:
+            u, v, truth = u[truth == 1], v[truth == 1], truth[truth == 1]
+        label, _ = dis.process(f, "AB", u, v, np.zeros(u.size, np.uint8))
+        code = np.where(label == "A", 1, np.where(label == "B", 2, 0))
+        wrong += int(((code > 0) & (code != truth)).sum())
+    c = dis.counts["labelled_by_order"]
+    assert wrong == 0
+    assert c["by_previous_frames"] > 3 * c["by_order"], c

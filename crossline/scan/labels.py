@@ -373,8 +373,10 @@ class Disambiguator:
         n = u.size
         by_order, piece = self.order.labels(u, v, ~merged)
         ref = {laser: self._ordered_reference(laser, frame) for laser in ("A", "B")}
-        if all(r is not None for r in ref.values()):
-            prior, d = self._match(u, v, merged, ref, count=False)
+        if any(r is not None for r in ref.values()):  # one laser's stripe may not be seen yet
+            none = (np.empty(0), np.empty(0))
+            prior, d = self._match(u, v, merged, {k: none if r is None else r for k, r in ref.items()},
+                                   count=False)
         else:
             prior, d = np.zeros(n, np.int64), np.full(n, np.inf)
         lab = np.zeros(n, np.int64)
