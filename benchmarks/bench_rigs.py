@@ -237,8 +237,11 @@ def main(argv: list[str] | None = None) -> int:
         row["meets"] = {k: meets(k, row["figures"].get(k, math.nan)) for k in TARGETS}
         rows[name] = row
     kind = "full" if a.full else "quick"
+    fresh = "Nothing to be done" in (wd / "snakemake.log").read_text(errors="replace")
     lines = [f"{len(caps)} rigs of --preset {a.preset} ({kind} captures), workflow wall "
-             f"{wall:.0f} s on {a.cores} cores; * = target missed, - = not measured",
+             f"{wall:.0f} s on {a.cores} cores"
+             + (" (every output was up to date: nothing rerun)" if fresh else "")
+             + "; * = target missed, - = not measured",
              "targets: " + ", ".join(f"{k} {h} {t:g}" for k, (t, h) in TARGETS.items()),
              "rig          " + " ".join(f"{k[:8]:>8}" for k in TARGETS)]
     all_ok = 0
@@ -260,6 +263,19 @@ def main(argv: list[str] | None = None) -> int:
         lines.append(f"{name:<16} " + " ".join(
             _fmt(k, ff.get(k, math.nan)) for k in ("camera_px", "plane_deg", "handeye_mm"))
             + f" {ff.get('rotation_deg', math.nan):7.4f}")
+    lines.append("A/B labels of the AB points against the true centre lines (the report's validation), "
+                 "every scan: wrong / checked, and the laser states of its first frames")
+    for name, path in caps.items():
+        mpath = wd / "reports" / name / "metrics.json"
+        scans = json.loads(mpath.read_text()).get("scans", {}) if mpath.is_file() else {}
+        labels = {k: s.get("truth_labels") or {} for k, s in scans.items()}
+        rows[name]["labels"] = labels
+        frames = sorted((path / "scans").glob("*/frames.csv"))
+        pattern = ",".join(dict.fromkeys(ln.split(",")[2] for ln in
+                                         frames[0].read_text().splitlines()[1:7])) if frames else "?"
+        lines.append(f"{name:<16} " + "  ".join(
+            f"{k} {lab.get('wrong', '-')}/{lab.get('checked', '-')}" for k, lab in sorted(labels.items()))
+            + f"  (states {pattern})")
     lines.append("stripe centres against the true centre lines (truth/*_centrelines.parquet: lit, seen, "
                  "not occluded), every scan: found = within 5 px of an unflagged centre; rms: row error "
                  "of the column-profiled ones within 2 px")
