@@ -102,8 +102,9 @@ def test_quick_report_every_section_and_same_bytes(quick_pipeline):
     assert 0 < row["U"] < 0.003 and abs(g["truth"]["mean_error_mm"]) <= row["U"]
 
 
-def test_pages_of_a_cloud_nowhere_near_its_part(quick_pipeline):
-    """A calibration far off leaves no point near the true part: the pages say so, not crash."""
+def test_pages_of_unusual_scans(quick_pipeline):
+    """A calibration far off leaves no point near the true part: the pages say so, not crash;
+    a scan without A or B frames says how its AB frames were labelled."""
     cap, interim, processed, _ = quick_pipeline
     data = build_report(cap, interim, processed)
     t = data.metrics["scans"]["part"]["truth"]
@@ -111,8 +112,13 @@ def test_pages_of_a_cloud_nowhere_near_its_part(quick_pipeline):
     t["deviation_to_true_mesh"] = {"n": 0, "n_total": n, "n_table": 0, "n_off_part": n,
                                    "max_distance_mm": 1.0}
     data.plots["scans"]["part"]["deviation"] = np.empty(0)
+    # and a scan labelled without A or B frames says how its labels came about
+    tri = data.metrics["scans"]["plate"]["counts"]["triangulation"]["counts"]
+    tri["labelled_by_order"] = {"frames": 24, "by_order": 1858, "by_previous_frames": 42742}
     texts = " ".join(" ".join(page_texts(f)) for f in build_pages(data.metrics, data.plots))
     assert f"no point within 1.0 mm of the part (of {fmt(n)})" in texts
+    assert "AB frames told apart by the order of the cross (24 frames)," in texts
+    assert "then followed: 42,742 centres from the frames before, 1,858 by the order" in texts
 
 
 def test_quick_report_pages_show_metrics(quick_pipeline):

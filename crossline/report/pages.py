@@ -841,6 +841,12 @@ def page_scan(m: dict[str, Any], name: str, plots: dict[str, Any]) -> Figure:
                       f"{half_amplitude_columns(int(win)):.1f}-column ripple)"]
         else:
             lines.append(f"centres: {name}, each column on its own")
+    by_order = (tri.get("counts") or {}).get("labelled_by_order")
+    if by_order:  # a scan without A or B frames
+        lines += [f"labels: no A or B frames; AB frames told apart by the order of the cross "
+                  f"({fmt(by_order['frames'])} frames),",
+                  f"  then followed: {fmt(by_order['by_previous_frames'])} centres from the frames "
+                  f"before, {fmt(by_order['by_order'])} by the order"]
     if c.get("points_per_frame") is not None:
         lines.append(f"points per frame {fmt(c['points_per_frame'], '', 1)}")
     if c.get("points_per_single_laser_frame") is not None:

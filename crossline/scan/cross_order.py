@@ -26,10 +26,10 @@ nearer its direction, if clearly nearer.
 
 The order flips for a surface turned so far that its tangent plane passes through ``L``
 (both stripes then lie along ``l``): the true surface is then the less plausible reading of
-the image (for the random rigs, a turn of 33-58 deg from facing the camera, depending on the
-angle between ``L`` and the viewing ray). So a piece's votes must agree, and
-:class:`~crossline.scan.labels.Disambiguator` follows the stripes from frame to frame once
-they are told apart: a piece the frames before label keeps that label.
+the image. A surface turned towards ``L`` gets there first, after a turn from facing the
+camera of 90 deg less the angle between ``L`` and the viewing ray. So a piece's votes must
+agree, and :class:`~crossline.scan.labels.Disambiguator` follows the stripes from frame to
+frame once they are told apart: a piece the frames before label keeps that label.
 """
 
 from __future__ import annotations
