@@ -25,6 +25,10 @@ within ``T`` px (the nearest if both are). Beyond the paper:
   ``ISOLATED_MAX`` between centres left unlabelled, is dropped as inconsistent: a stale
   reference of one laser can lie on the other's stripe for a few columns (an occlusion edge, a
   limb, a steep flank), never along a whole stripe;
+- **no single-laser frames** (``order``, a :class:`~crossline.scan.cross_order.CrossOrder`):
+  in a scan without A or without B frames (a scanner that lights both lines in every frame),
+  AB frames are told apart by the order of the cross that the calibration fixes, and once
+  told apart the stripes are followed from AB frame to AB frame;
 - merged segments (flag ``MERGED`` from the extractor: two stripes in one blob) of AB frames
   are dropped, centres of ``off`` frames are dropped; every drop is counted by reason.
 
