@@ -131,19 +131,24 @@ def laser_views(cam: Camera, spec: BoardSpec, laser: LaserSpec, depths: tuple[fl
         depth = depths[i % len(depths)] + (i // len(depths)) * 3.0
         R = rotvec_to_matrix(np.array([0.0, 0.0, np.radians(10.0 * np.sin(1.7 * i + phase))])) @ \
             _tilt(np.radians(axes[i % len(axes)] + phase), np.radians(tilts[i % len(tilts)]))
-        if spec.board.pattern == "chessboard":
-            R = _across_squares(R, nrm)
+        # a chessboard turned so the stripe crosses its squares, by the least turn that lets
+        # it fit the frame; the board as it comes if no such turn does
+        turns = [_across_squares(R, nrm, k) for k in (0, -1, 1, -2, 2)] \
+            if spec.board.pattern == "chessboard" else []
         T = None
-        for dz in np.arange(0.0, 24.0, 3.0):
-            z = depth + dz
-            q = -(nrm[2] * z + d) * nrm[:2] / (nrm[:2] @ nrm[:2])
-            P0 = np.array([q[0], q[1], z])
-            # slide along the stripe (stays on the plane) until the whole board is in view
-            for s in np.concatenate([[0.0], np.repeat(np.arange(2.0, 60.0, 2.0), 2)
-                                     * np.tile([1, -1], 29)]):
-                Tc = make_transform(R, P0 + s * along - R @ bc)
-                if _visible(cam, Tc, pts, margin=20.0):
-                    T = Tc
+        for Rt in [*turns, R]:
+            for dz in np.arange(0.0, 24.0, 3.0):
+                z = depth + dz
+                q = -(nrm[2] * z + d) * nrm[:2] / (nrm[:2] @ nrm[:2])
+                P0 = np.array([q[0], q[1], z])
+                # slide along the stripe (stays on the plane) until the whole board is in view
+                for s in np.concatenate([[0.0], np.repeat(np.arange(2.0, 60.0, 2.0), 2)
+                                         * np.tile([1, -1], 29)]):
+                    Tc = make_transform(Rt, P0 + s * along - Rt @ bc)
+                    if _visible(cam, Tc, pts, margin=20.0):
+                        T = Tc
+                        break
+                if T is not None:
                     break
             if T is not None:
                 break
@@ -153,13 +158,14 @@ def laser_views(cam: Camera, spec: BoardSpec, laser: LaserSpec, depths: tuple[fl
     return views
 
 
-def _across_squares(R: np.ndarray, laser_normal: np.ndarray) -> np.ndarray:
+def _across_squares(R: np.ndarray, laser_normal: np.ndarray, k: int = 0) -> np.ndarray:
     """The board turned in its plane so that the stripe crosses a chessboard's squares at 22.5 deg
     to their rows and diagonals, as a user would hold it: a stripe along a row runs on the
-    squares' edges, one along a diagonal on one colour and through the corners."""
+    squares' edges, one along a diagonal on one colour and through the corners. ``k`` adds
+    ``k`` x 45 deg to the least such turn."""
     t = R.T @ np.cross(laser_normal, R[:, 2])  # the stripe's direction in the board frame
     psi = np.degrees(np.arctan2(t[1], t[0]))
-    delta = psi % 45.0 - 22.5  # the smallest turn that brings it to 22.5 deg modulo 45
+    delta = psi % 45.0 - 22.5 + 45.0 * k  # the least turn to 22.5 deg modulo 45, and k more
     return R @ rotvec_to_matrix(np.array([0.0, 0.0, np.radians(delta)]))
 
 
