@@ -67,7 +67,7 @@ class CrossOrder:
     origin: np.ndarray  # a point of l, undistorted normalised coordinates
     along: np.ndarray  # unit direction of l
     across: np.ndarray  # unit normal of l (h > 0 on its side)
-    sigma: float  # sign((s_A - s_B) h) on a surface facing the camera
+    sigma: float  # +1: stripe A at the smaller angle from l on a surface facing the camera, -1: B
     angles: tuple[float, float]  # image angle of stripes A and B from l on that surface, rad
 
     @classmethod
