@@ -205,3 +205,32 @@ def test_laser_image_without_stripe_names_the_file(quick_capture: Path, tmp_path
     err = capsys.readouterr().err
     assert "calibration/laser_B/pose_01_laser.png: no laser stripe on the board" in err
     assert not out.exists()
+
+
+def test_laser_always_on_calibrates_against_truth(quick_capture: Path, tmp_path: Path) -> None:
+    """Laser poses without a lasers-off twin: the camera takes the views there are (with its
+    default view set, which adds the lasers-off board views where they exist), and every laser
+    pose yields its plane, the board found with the stripe removed (issue 18.5). Pose B 2's
+    stripe crosses a row of dark circles and falls apart into pieces, each shorter than a
+    stripe must be: they are joined along their line."""
+    from tests.broken import break_capture
+
+    cap = break_capture(quick_capture, tmp_path / "always_on", "laser_always_on")
+    assert not list(cap.glob("calibration/laser_*/*_board.png"))
+    cam, las = tmp_path / "camera.json", tmp_path / "lasers.json"
+    assert main(["calibrate-camera", str(cap), "--out", str(cam), "--threads", "2"]) == 0
+    views = [v["image"] for v in Camera.load(cam).extra["views"]]
+    assert not any(v.startswith("calibration/laser_") for v in views)
+    assert any(v.startswith("calibration/handeye/") for v in views)
+    assert main(["calibrate-lasers", str(cap), "--camera", str(cam), "--out", str(las),
+                 "--threads", "2"]) == 0
+    planes = LaserPlanes.load(las)
+    truth = _truth(quick_capture)
+    for laser in ("A", "B"):
+        n_t = np.array(truth["lasers"][laser]["normal"])
+        p = planes[laser]
+        n, d = (p.normal, p.d) if p.normal @ n_t > 0 else (-p.normal, -p.d)
+        assert np.degrees(angle_between(n, n_t)) < 0.01
+        assert abs(d - truth["lasers"][laser]["d"]) < 0.01
+        assert len(p.extra["poses"]) == 3 and not p.extra.get("skipped_poses")
+        assert all(q["n_used"] > 100 for q in p.extra["poses"])

@@ -327,3 +327,30 @@ def test_chessboard_poses_of_a_drawn_rig(tmp_path) -> None:
     for laser in ("A", "B"):
         assert planes[laser].extra["skipped_poses"] == []
         assert planes[laser].extra["rms_mm"] < 0.03
+
+
+def test_stripe_cut_into_pieces_by_dark_circles_is_removed_whole() -> None:
+    """Laser always on: a stripe dimmed to nothing on each dark circle it crosses is pieces
+    shorter than a stripe must be (a tenth of the image's short side), each on one line; the
+    pieces are joined and the stripe removed everywhere, the circles left alone."""
+    from crossline.calibrate.lasers import remove_stripe
+
+    h, w = 600, 900
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    albedo = np.full((h, w), 0.8)
+    circles = np.zeros((h, w), bool)
+    for cu in range(60, w, 90):  # a row of dark circles 40 px across, 50 px of plate between
+        for cv_ in (150, 300, 450):
+            circles |= (u - cu) ** 2 + (v - cv_) ** 2 < 20**2
+    albedo[circles] = 0.04
+    # the stripe runs along the row of circles at v = 300, turned 2 degrees
+    dist = (v - 300 - np.tan(np.radians(2)) * (u - w / 2)) * np.cos(np.radians(2))
+    stripe = 200.0 * np.exp(-0.5 * (dist / 2.0) ** 2)
+    rng = np.random.default_rng(3)
+    img = np.clip(albedo * (60 + stripe) + rng.normal(0, 1.0, (h, w)), 0, 255).round().astype(np.uint8)
+    out, mask = remove_stripe(img)
+    on_plate = (np.abs(dist) < 2) & ~circles & (u > 20) & (u < w - 20)
+    assert mask[on_plate].mean() > 0.99
+    # what is left where the stripe was is the plate, not the stripe
+    assert np.median(out[on_plate].astype(float)) < 0.8 * 60 + 6
+    assert not mask[np.abs(dist) > 20].any()

@@ -557,7 +557,7 @@ def run_calibrate_camera(
     """Stage: calibrate the camera from the board views and write ``camera.json``.
 
     ``views="camera"`` uses ``calibration/camera/*.png`` only; ``"all"`` (default) adds every
-    other lasers-off board view of the capture (``laser_*/<pose>_board.png`` and
+    other lasers-off board view of the capture (``laser_*/<pose>_board.png`` where it exists, and
     ``handeye/*.png``): same camera, same board, and the intrinsics' precision grows with the
     number of views (the principal point above all). ``distortion``: see :func:`solve_views`
     (the model is judged over the scan window, where the scanner measures).
@@ -572,7 +572,9 @@ def run_calibrate_camera(
     size = (cap.rig.sensor.width, cap.rig.sensor.height)
     paths = list(cap.camera_images)
     if views == "all":
-        paths += [v.board_image for laser in sorted(cap.laser_views) for v in cap.laser_views[laser]]
+        # a laser pose taken with the laser always on has no lasers-off board view to add
+        paths += [v.board_image for laser in sorted(cap.laser_views) for v in cap.laser_views[laser]
+                  if v.board_image is not None]
         paths += list(cap.handeye_images)
     names = [str(p.relative_to(cap.root)) for p in paths]
     detections = detect_views(paths, board, (size[1], size[0]), threads)

@@ -194,6 +194,7 @@ def remove_stripe(laser_image: np.ndarray, kernel_px: int | None = None) -> tupl
     length = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
     long_ = length >= 0.1 * min(h, w)
     long_[0] = False
+    long_ |= _on_long_line(cand, lab, length, 0.1 * min(h, w))
     mask = long_[lab].astype(np.uint8)
     if long_.any():
         # the stripe's tails reach beyond the pixels above a tenth of its level: grow the mask
@@ -203,6 +204,30 @@ def remove_stripe(laser_image: np.ndarray, kernel_px: int | None = None) -> tupl
         mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (g, g)))
     mask = mask.astype(bool)
     return np.where(mask, opened, img).astype(img.dtype), mask
+
+
+def _on_long_line(cand: np.ndarray, lab: np.ndarray, length: np.ndarray, min_len: float) -> np.ndarray:
+    """Components that lie on one long straight line with others: a stripe cut into pieces.
+
+    A stripe that crosses dark circles (or dark squares) is dim there and falls apart into
+    pieces each shorter than a stripe must be; a probabilistic Hough transform that bridges
+    gaps up to the same length joins them. Pieces shorter than 10 px (noise) are not taken.
+    """
+    keep = np.zeros(len(length), bool)
+    if len(length) < 3:
+        return keep
+    lines = cv2.HoughLinesP(cand * np.uint8(255), 1, np.pi / 720, threshold=max(20, int(min_len / 4)),
+                            minLineLength=min_len, maxLineGap=min_len)
+    if lines is None:
+        return keep
+    on = np.zeros_like(cand)
+    for x0, y0, x1, y1 in lines[:, 0]:
+        cv2.line(on, (int(x0), int(y0)), (int(x1), int(y1)), 1, 3)
+    hit = np.unique(lab[(on > 0) & (cand > 0)])
+    keep[hit] = True
+    keep[0] = False
+    keep &= length >= 10
+    return keep
 
 
 def _peak(diff: np.ndarray, k: int = 400) -> float:
