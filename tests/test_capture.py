@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -17,6 +18,7 @@ from crossline.io.capture import (
     laser_pattern,
     open_capture,
     read_rig,
+    truth_file,
 )
 from crossline.io.images import ImageError, png_info, read_image, write_png
 
@@ -731,6 +733,73 @@ def test_rig_yaml_symlink_outside(capture: Path, tmp_path: Path) -> None:
 def test_scan_name_outside(capture: Path) -> None:
     edit_rig(capture, lambda d: d["scans"].__setitem__("../../x", {"artefact": "plane"}))
     assert "scan name '../../x' leads out of its folder" in problems_of(capture)
+
+
+def _truth(capture: Path, scans: dict) -> None:
+    """A simulated capture's truth.json with these ``scans`` entries (their file names)."""
+    (capture / "truth.json").write_text(json.dumps({"format": "crossline-truth/1", "scans": scans},
+                                                   indent=2))
+
+
+def test_truth_json_names_outside(capture: Path, tmp_path: Path, capsys) -> None:
+    """Issue 23.1: the files truth.json names ('..', an absolute path, a symbolic link out)
+    are refused by check and by the report's reader, naming truth.json, the key and why."""
+    (tmp_path / "evil.ply").write_text("ply\n")
+    (capture / "truth").mkdir()
+    (capture / "truth/gauge_centrelines.parquet").symlink_to(tmp_path / "evil.ply")
+    scans = {"plate": {"mesh": "../evil.ply", "centrelines": "/etc/passwd",
+                       "poses": "truth/plate_poses.parquet"},  # inside (if missing): fine
+             "gauge": {"centrelines": "truth/gauge_centrelines.parquet", "height": 20.0}}
+    _truth(capture, scans)
+    expected = [
+        "truth.json: 'scans.plate.mesh' = '../evil.ply' leads out of its folder ('..'); every "
+        "file of a capture lies inside it",
+        "truth.json: 'scans.plate.centrelines' = '/etc/passwd' is an absolute path; names are "
+        "relative to the capture folder, inside it",
+        "truth.json: 'scans.gauge.centrelines' = 'truth/gauge_centrelines.parquet' is a symbolic "
+        f"link to {tmp_path / 'evil.ply'}, outside the capture; every file of a capture lies "
+        "inside its folder",
+    ]
+    with pytest.raises(CaptureError) as info:
+        open_capture(capture)
+    assert [str(p) for p in info.value.problems] == expected
+    assert main(["check", str(capture)]) == 2
+    err = capsys.readouterr().err
+    assert all(e in err for e in expected) and "3 problems" in err
+    for (scan, key), e in zip([("plate", "mesh"), ("plate", "centrelines"), ("gauge", "centrelines")],
+                              expected, strict=True):
+        with pytest.raises(CaptureError) as info:
+            truth_file(capture, scan, scans[scan], key)
+        assert [str(p) for p in info.value.problems] == [e]
+    assert truth_file(capture, "plate", scans["plate"], "poses") == capture / "truth/plate_poses.parquet"
+
+
+def test_truth_json_names_inside(capture: Path) -> None:
+    """Good names (as the simulator writes them) change nothing; nor do other keys, a name
+    that is not there yet, a symbolic link inside, or a truth.json that is not readable JSON
+    (the report leaves its validation out)."""
+    (capture / "truth").mkdir()
+    (capture / "truth/part.ply").write_text("ply\n")
+    (capture / "truth/link.ply").symlink_to(Path("part.ply"))
+    scans = {"plate": {"mesh": "truth/part.ply", "centrelines": "truth/plate_centrelines.parquet",
+                       "plane_base": [0, 0, 1, 0]},
+             "gauge": {"mesh": "truth/link.ply"}, "other": "not a mapping"}
+    _truth(capture, scans)
+    s = check_capture(capture)
+    assert s["simulated"] and open_capture(capture).truth_path == capture / "truth.json"
+    assert truth_file(capture, "plate", scans["plate"], "mesh") == capture / "truth/part.ply"
+    assert truth_file(capture, "gauge", scans["gauge"], "mesh") == capture / "truth/link.ply"
+    (capture / "truth.json").write_text('{"scans": {"plate": {"mesh": "../evil.ply"')
+    assert check_capture(capture)["simulated"]
+
+
+def test_truth_json_symlink_outside(capture: Path, tmp_path: Path) -> None:
+    """truth.json itself leading outside is refused, and not read."""
+    (tmp_path / "truth.json").write_text(json.dumps({"scans": {"plate": {"mesh": "../x.ply"}}}))
+    (capture / "truth.json").symlink_to(tmp_path / "truth.json")
+    msg = problems_of(capture)
+    assert f"truth.json: is a symbolic link to {tmp_path / 'truth.json'}, outside the capture" in msg
+    assert "scans.plate.mesh" not in msg
 
 
 # --------------------------------------------------------------------------- image formats

@@ -4,16 +4,18 @@ files (symbolic links out included) give either a correct result or a :class:`Ca
 whose every problem names a file of the capture; never another exception, and never a read of
 a file outside the capture (every ``open`` is watched through an audit hook).
 
-Cases tried (hypothesis ``max_examples``): 10 properties; 60 examples each for rig.yaml bytes,
+Cases tried (hypothesis ``max_examples``): 11 properties; 60 examples each for rig.yaml bytes,
 poses.csv bytes, frame bytes and missing/extra files, 80 each for rig.yaml keys and types,
-frames.csv rows, column orders, poses.csv names, image bytes in every format and PNG header
-sizes: 720 captures in all, about 10 s of CPU (20-30 s wall on 2 shared, loaded cores).
+frames.csv rows, column orders, poses.csv names, image bytes in every format, PNG header
+sizes and the file names in truth.json: 800 captures in all, about 10 s of CPU (20-30 s wall
+on 2 shared, loaded cores).
 ``CROSSLINE_FUZZ_SCALE=N`` multiplies the cases.
 """
 
 from __future__ import annotations
 
 import atexit
+import json
 import os
 import shutil
 import struct
@@ -27,7 +29,14 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from crossline.io.capture import CaptureError, check_capture, open_capture, read_rig
+from crossline.io.capture import (
+    TRUTH_FILE_KEYS,
+    CaptureError,
+    check_capture,
+    open_capture,
+    read_rig,
+    truth_file,
+)
 from crossline.io.images import ImageError, image_info, png_info, read_image, write_image
 from tests.test_capture import RIG, make_capture
 
@@ -114,14 +123,16 @@ def assert_named(exc: CaptureError, *expected: str) -> None:
         assert any(p.file.startswith(expected) for p in exc.problems), str(exc)
 
 
-def assert_refused_or_read(root: Path, p: Path, readers: tuple = ()) -> list:
-    """Each reader decodes the damaged image ``p`` or refuses it naming it; the capture check
-    passes or names it. Returns what the readers decoded."""
+def assert_refused_or_read(root: Path, p: Path, readers: tuple = (),
+                           refusals: tuple = (ImageError,)) -> list:
+    """Each reader decodes the damaged file ``p`` (an image by default) or refuses it naming
+    it, with one of ``refusals``; the capture check passes or names it. Returns what the
+    readers decoded."""
     out = []
     for fn in readers or (image_info, read_image):
         try:
             out.append((fn, fn(p)))
-        except ImageError as exc:
+        except refusals as exc:
             assert p.name in str(exc)
     try:
         check_capture(root)
@@ -417,6 +428,57 @@ def test_missing_and_extra_files(missing: list[int], extras: list) -> None:
             return
         assert set(summary["stages"]) == {"calibrate_camera", "calibrate_lasers", "calibrate_handeye",
                                           "scans"}
+
+
+# --------------------------------------------------------------------------- truth.json's file names
+
+
+truth_name = st.one_of(
+    name, leaf,
+    st.sampled_from(["truth/part.ply", "truth/out.ply", "truth/tmp", "truth/tmp/passwd", "truth",
+                     "truth/../rig.yaml", "truth/a/../../../bait/evil.stl", "rig.yaml",
+                     "truth/missing.parquet", "./truth/part.ply", "truth//part.ply"]),
+)
+
+
+@MORE
+@given(st.lists(st.tuples(st.sampled_from(["plate", "gauge", "part", "../x"]),
+                          st.sampled_from(TRUTH_FILE_KEYS), truth_name), max_size=4))
+def test_truth_json_names(entries: list) -> None:
+    """Names anywhere in truth.json's file keys (out of the capture, absolute, through symbolic
+    links out, not strings): the check names truth.json, or the report's reader gets a path
+    inside the capture and reads it; either both refuse or neither does."""
+    scans: dict[str, dict] = {}
+    for scan, key, v in entries:
+        scans.setdefault(scan, {})[key] = v
+    with watched() as root:
+        (root / "truth").mkdir()
+        (root / "truth/part.ply").write_text("ply\n")
+        (root / "truth/out.ply").symlink_to(_BAIT / "evil.stl")
+        (root / "truth/tmp").symlink_to(Path("/etc"))
+        (root / "truth.json").write_text(json.dumps({"format": "crossline-truth/1", "scans": scans}))
+
+        def read_named(p: Path) -> list[bytes]:
+            """What the report does with each name: the path truth_file gives, then the file."""
+            out = []
+            for scan, entry in json.loads(p.read_text())["scans"].items():
+                for key in entry:
+                    f = truth_file(root, scan, entry, key)
+                    assert f.resolve().is_relative_to(root.resolve()), f
+                    if f.is_file():
+                        out.append(f.read_bytes())
+            return out
+
+        read = assert_refused_or_read(root, root / "truth.json", (read_named,), (CaptureError,))
+        try:
+            open_capture(root)
+            refused = False
+        except CaptureError as exc:
+            assert_named(exc, "truth.json")
+            assert all(p.file == "truth.json" and p.message.startswith("'scans.")
+                       for p in exc.problems), str(exc)
+            refused = True
+        assert refused == (not read)
 
 
 def test_watch_sees_reads_outside() -> None:

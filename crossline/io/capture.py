@@ -8,8 +8,9 @@ what the capture holds allows, and why not the others.
 
 Every part of a capture is optional (camera views only, calibration without scans, ...): a
 folder that is absent or empty is not a problem, one that is there but broken is. Every file a
-capture names or holds must lie inside its folder once symbolic links are followed (a capture
-that reaches outside itself is neither reproducible nor safe to process on a shared service).
+capture names or holds (the files a simulated capture's truth.json names included) must lie
+inside its folder once symbolic links are followed (a capture that reaches outside itself is
+neither reproducible nor safe to process on a shared service).
 
 Line numbers count the CSV header as line 1, as a text editor does.
 """
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import csv
 import difflib
+import json
 import math
 import re
 import reprlib
@@ -42,6 +44,7 @@ __all__ = [
     "MESH_EXTENSIONS",
     "POSE_COLUMNS",
     "STAGES",
+    "TRUTH_FILE_KEYS",
     "Capture",
     "CaptureError",
     "FramesTable",
@@ -59,6 +62,7 @@ __all__ = [
     "open_capture",
     "read_frames_table",
     "read_rig",
+    "truth_file",
 ]
 
 FORMAT = "crossline-capture/1"
@@ -81,6 +85,9 @@ QUAT_TOLERANCE = 1e-3  # |‖q‖ − 1| allowed before a quaternion is rejected
 MIN_LASER_POSES = 2
 MIN_CAMERA_VIEWS = 3  # Zhang's method: fewer board views do not determine the intrinsics
 MIN_HANDEYE_POSES = 3  # two motions with distinct rotation axes
+# the keys of a simulated capture's truth.json (under scans.<scan>) that name a file of the
+# capture (crossline.sim.capture writes them as truth/<file>)
+TRUTH_FILE_KEYS = ("mesh", "centrelines", "poses")
 
 
 @dataclass(frozen=True)
@@ -287,6 +294,46 @@ class _Inside:
             return None
         how = "is a symbolic link" if p.is_symlink() else "lies behind a symbolic link"
         return f"{how} to {real}, outside the capture; every file of a capture lies inside its folder"
+
+
+def _truth_problem(root: Path, inside: _Inside, where: str, name: Any) -> str | None:
+    """Why a file name truth.json gives under the key ``where`` may not be used, or None."""
+    if not isinstance(name, str):
+        why = "must be a file's path relative to the capture (e.g. truth/part.ply)"
+    else:
+        why = _name_problem(name) or inside.why_not(root / name)
+    return None if why is None else f"'{where}' = {_short(name)} {why}"
+
+
+def truth_file(root: str | Path, scan: str, entry: dict[str, Any], key: str) -> Path:
+    """The file of the capture ``root`` that truth.json names under ``scans.<scan>.<key>``
+    (``entry``: truth.json's ``scans.<scan>``; ``key``: one of :data:`TRUTH_FILE_KEYS`), for a
+    reader to open; :class:`CaptureError` naming truth.json, the key and the reason if the name
+    is not a path relative to the capture that stays inside it once symbolic links are
+    followed. The file need not exist (a reader skips a missing one)."""
+    root = Path(root)
+    name = entry[key]
+    why = _truth_problem(root, _Inside(root), f"scans.{scan}.{key}", name)
+    if why is not None:
+        raise CaptureError(root, [Problem("truth.json", why)])
+    return root / name
+
+
+def _truth_files(root: Path, inside: _Inside, problems: list[Problem]) -> None:
+    """A problem for each file name of truth.json (:data:`TRUTH_FILE_KEYS` of each scan) that
+    leads outside the capture. An unreadable truth.json is none: the report then leaves its
+    validation out, as it says."""
+    try:
+        truth = json.loads((root / "truth.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError):
+        return
+    scans = truth.get("scans") if isinstance(truth, dict) else None
+    for scan, entry in (scans.items() if isinstance(scans, dict) else ()):
+        for key in TRUTH_FILE_KEYS if isinstance(entry, dict) else ():
+            if key in entry:
+                why = _truth_problem(root, inside, f"scans.{scan}.{key}", entry[key])
+                if why is not None:
+                    problems.append(Problem("truth.json", why))
 
 
 def read_rig(path: str | Path) -> Rig:
@@ -895,6 +942,8 @@ def open_capture(root: str | Path) -> Capture:
     truth = root / "truth.json"
     if truth.is_symlink() and inside.why_not(truth) is not None:
         problems.append(Problem("truth.json", inside.why_not(truth)))
+    elif truth.is_file():
+        _truth_files(root, inside, problems)
     cal = root / "calibration"
     cal_entries = _folder(root, inside, cal, problems) or []
     camera_images = _images(root, inside, cal / "camera", problems)

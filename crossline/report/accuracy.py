@@ -426,6 +426,7 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
     With a calibration ``model`` (:func:`crossline.report.uncertainty.calibration_model`) each
     checked figure gets its Monte Carlo uncertainty under ``uncertainty``.
     """
+    from crossline.io.capture import truth_file
     from crossline.report import metrics as mt
     from crossline.report import uncertainty as uc
 
@@ -547,7 +548,7 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
                     out.setdefault("truth", {})["nominal_alignment"] = _alignment_error(
                         np.asarray(nc["T_nominal_cloud"]), np.asarray(tscan["T_base_nominal"]), P)
             if tscan and "mesh" in tscan:
-                dev = _mesh_deviation(P, root / str(tscan["mesh"]), files, towards=up)
+                dev = _mesh_deviation(P, truth_file(root, sd.name, tscan, "mesh"), files, towards=up)
                 if dev is not None:
                     # the part stands on the table, which the stripes cross too: points nearer
                     # the table plane than the part, or farther from the part than
@@ -581,7 +582,8 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
                 out["uncertainty_error"] = str(exc)
                 log.warning("scan %s: no uncertainty: %s", sd.name, exc)
     if tscan and tscan.get("centrelines") and sd.points_path is not None:
-        out["truth_labels"] = _label_truth(sd.points_path, root / str(tscan["centrelines"]), files)
+        out["truth_labels"] = _label_truth(sd.points_path, truth_file(root, sd.name, tscan, "centrelines"),
+                                           files)
 
     # top view, coloured by height (above the artefact's reference plane, else along `up`)
     if height_ref is not None:
