@@ -731,3 +731,37 @@ def test_stripe_across_a_room_lit_face_is_found_on_the_frame_s_own_pixels(extrac
     assert both.size == inner.sum()
     dv = c["v"][single][sel][ic] - d["v"][d["flags"] == 0][idd]
     assert np.abs(dv).max() < 0.02 if extractor != "steger" else np.abs(dv).max() < 0.05
+
+
+def test_colour_scan_frames_are_measured_on_the_laser_s_channel(tmp_path) -> None:
+    """Without ``sensor.channel`` a colour scan is measured on the channel in which its stripe
+    stands highest above the noise: a red laser on a part the room lights white and green is
+    red, not the luminance (which mixes in the other channels' noise) nor the green that
+    holds the scene's brightest light."""
+    from crossline.io.images import write_image, write_png
+    from crossline.scan.stripes import scan_channel
+
+    rng = np.random.default_rng(5)
+    h, w = 120, 200
+    v = np.arange(h)[:, None]
+    paths = []
+    for k in range(4):
+        stripe = 150.0 * np.exp(-0.5 * ((v - 40 - 10 * k) / 2.0) ** 2) * np.ones((1, w))
+        rgb = np.empty((h, w, 3))
+        rgb[..., 0] = 30 + stripe
+        rgb[..., 1] = 30 + 0.08 * stripe
+        rgb[..., 1][:, 120:] += 200  # a green-lit patch, brighter than the stripe, no line
+        rgb[..., 2] = 30 + 0.05 * stripe
+        rgb += rng.normal(0, 3.0, rgb.shape)
+        p = tmp_path / f"{k:06d}.png"
+        write_image(p, np.clip(rgb, 0, 255).round().astype(np.uint8))
+        paths.append(p)
+    chosen = scan_channel(paths, None, (h, w))
+    assert chosen["name"] == "red" and chosen["source"].startswith("chosen")
+    assert chosen["scores"]["red"] > 1.3 * chosen["scores"]["grey"]
+    assert scan_channel(paths, "green", (h, w)) == {"name": "green", "source": "rig.yaml sensor.channel"}
+    grey = tmp_path / "grey.png"
+    write_png(grey, np.full((h, w), 30, np.uint8))
+    assert scan_channel([grey], None, (h, w))["name"] is None
+    with pytest.raises(ValueError, match=r"000000\.png: image is 200x120 px, expected 100x120 px"):
+        scan_channel(paths, None, (h, 100))

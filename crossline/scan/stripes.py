@@ -126,6 +126,7 @@ PEAK_QUANTILE = 0.9  # the stripe's peak: this quantile of the stripe columns' b
 MIN_STRIPE_COLUMNS = 3  # fewer columns above the noise floor: the frame holds no stripe
 LEVEL_STEP = 5  # background and noise from every 5th pixel of every 5th column
 DATA_RANGE_FRAMES = 16  # frames spread over a scan that the data range is inferred from
+CHANNEL_DISC_PX = 31  # wider than a stripe (3-12 px, more where it grazes a surface)
 
 COLUMNS = ("u", "v", "strength", "peak", "width", "width_n", "nx", "ny", "ridge", "flags", "axis")
 _F32 = ("strength", "peak", "width", "width_n", "nx", "ny", "ridge")
@@ -1704,7 +1705,7 @@ def _data_range(paths: list[Path], data_bits: int | None, shape, decoder: str,
         return {"max": 2 ** int(data_bits) - 1, "bits": int(data_bits), "source": "rig.yaml sensor.data_bits"}
     if not paths:
         return {"max": 255, "bits": 8, "source": "no frames"}
-    idx = np.unique(np.linspace(0, len(paths) - 1, min(DATA_RANGE_FRAMES, len(paths))).round().astype(int))
+    idx = _sample_frames(len(paths))
     top = 0
     for k in idx:
         img = read_frame(paths[k], shape, decoder, True, channel)
@@ -1714,6 +1715,55 @@ def _data_range(paths: list[Path], data_bits: int | None, shape, decoder: str,
     bits = data_bits_for(top)
     return {"max": 2**bits - 1, "bits": bits,
             "source": f"inferred from the frames (largest value {top} over {idx.size} frames)"}
+
+
+def _sample_frames(n: int) -> np.ndarray:
+    """Indices of up to ``DATA_RANGE_FRAMES`` frames spread evenly over a scan of ``n`` frames
+    (the same for every chunk of the scan, so that chunks agree)."""
+    return np.unique(np.linspace(0, n - 1, min(DATA_RANGE_FRAMES, n)).round().astype(int))
+
+
+def scan_channel(paths: list[Path], channel: str | None, shape) -> dict[str, Any]:
+    """The colour channel a scan's stripes are measured on: ``rig.yaml``'s, else chosen.
+
+    Chosen (colour frames, no ``sensor.channel``) as the channel of red, green, blue and the
+    luminance in which the stripes stand highest above their surroundings (the 99.9 %
+    quantile of the frame less its opening by a disc of ``CHANNEL_DISC_PX``, wider than a
+    stripe) in units of the channel's own noise (:func:`frame_levels`), summed over the frames
+    the data range is inferred from: a red laser on a part lit white by the room stands out in
+    red, not in the luminance that mixes in the other channels' noise, nor in a channel the
+    room lights brightly. Grey frames have no choice to make.
+    """
+    from crossline.io.images import ImageError, read_image_channels
+
+    if channel is not None:
+        return {"name": channel, "source": "rig.yaml sensor.channel"}
+    if not paths:
+        return {"name": None, "source": "no frames"}
+    names = ("red", "green", "blue", "grey")
+    score = np.zeros(len(names))
+    d = CHANNEL_DISC_PX // 2 | 1  # on every second pixel
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (d, d))
+    for k in _sample_frames(len(paths)):
+        rgb = read_image_channels(paths[k])  # a bad file raises ImageError naming it
+        if rgb.shape[2] == 1:
+            return {"name": None, "source": "grey frames"}
+        if rgb.shape[:2] != tuple(shape):
+            raise ImageError(f"{paths[k]}: image is {rgb.shape[1]}x{rgb.shape[0]} px, expected "
+                             f"{shape[1]}x{shape[0]} px")
+        grey = cv2.cvtColor(np.ascontiguousarray(rgb[:, :, ::-1]), cv2.COLOR_BGR2GRAY)
+        for j, img in enumerate((rgb[:, :, 0], rgb[:, :, 1], rgb[:, :, 2], grey)):
+            # a stripe is a ridge narrower than the disc: the opening takes it away, and what
+            # stands above the opening is the stripe, not a patch the room lights brightly
+            # (on every second pixel: a stripe at least 3 px wide keeps its peak)
+            sub = np.ascontiguousarray(img[::2, ::2])
+            ridge = sub.astype(np.float32) - cv2.morphologyEx(sub, cv2.MORPH_OPEN, disc)
+            top = float(np.quantile(ridge, 0.999))
+            score[j] += top / frame_levels(np.ascontiguousarray(img.T), 0.5)["noise"]
+    best = int(np.argmax(score))
+    shown = ", ".join(f"{n} {v:.0f}" for n, v in zip(names, score, strict=True))
+    return {"name": names[best], "source": f"chosen: stripe over noise summed over frames ({shown})",
+            "scores": dict(zip(names, score.round(3).tolist(), strict=True))}
 
 
 def run_extract_stripes(
@@ -1779,13 +1829,18 @@ def run_extract_stripes(
     levels: list[tuple[int, float, float, float, float]] = []
     paths = [sc.frame_path(f) for f in frames]
     sensor = cap.rig.sensor
-    channel = getattr(sensor, "channel", None)
     try:
+        scan_paths = [sc.frame_path(f) for f in sc.frames]
+        chosen = scan_channel(scan_paths, getattr(sensor, "channel", None), (win.height, win.width))
+        channel = chosen["name"]
         rng_ = _data_range([sc.frame_path(f) for f in sc.frames], getattr(sensor, "data_bits", None),
                            (win.height, win.width), decoder, channel)
     except CrosslineError as exc:
         raise StageError(f"scan {scan}: {exc}") from exc
     meta["data_range"] = rng_
+    meta["channel"] = chosen
+    if chosen["source"].startswith("chosen"):
+        log.info("scan %s: colour frames measured on the %s channel (%s)", scan, channel, chosen["source"])
     log.info("scan %s: data range 0..%d (%d bits, %s)", scan, rng_["max"], rng_["bits"], rng_["source"])
     fit = _frame_work(extractor, params, float(rng_["max"]))
     transposed = True
