@@ -234,3 +234,35 @@ def test_laser_always_on_calibrates_against_truth(quick_capture: Path, tmp_path:
         assert abs(d - truth["lasers"][laser]["d"]) < 0.01
         assert len(p.extra["poses"]) == 3 and not p.extra.get("skipped_poses")
         assert all(q["n_used"] > 100 for q in p.extra["poses"])
+
+
+def test_one_red_laser_in_colour_jpeg_calibrates_against_truth(tmp_path: Path) -> None:
+    """A calibration-only capture of a one-line rig, colour JPEG at quality 90, a red laser
+    (issue 18.2, 18.4): the camera within the bound of the grey PNG capture over the working
+    volume, the one plane within a hundredth of a degree and of a mm; the laser's channel
+    chosen per pose where rig.yaml does not name it."""
+    import yaml
+
+    from crossline.sim import simulate
+
+    cap = simulate(tmp_path / "jpeg", preset="paper", seed=0, quick=True, lasers=("A",),
+                   image_format="jpeg", jpeg_quality=90, colour="red", parts=["camera", "lasers"],
+                   progress=False)
+    rig = yaml.safe_load((cap / "rig.yaml").read_text())
+    assert rig["sensor"].pop("channel") == "red"
+    (cap / "rig.yaml").write_text(yaml.safe_dump(rig))
+    cam, las = tmp_path / "camera.json", tmp_path / "lasers.json"
+    assert main(["calibrate-camera", str(cap), "--out", str(cam), "--threads", "2"]) == 0
+    truth = _truth(cap)
+    est, true = Camera.load(cam), _true_camera(truth)
+    Q = _volume(true)
+    assert np.sqrt(np.mean(np.sum((est.project(Q) - true.project(Q)) ** 2, 1))) < 0.1
+    assert main(["calibrate-lasers", str(cap), "--camera", str(cam), "--out", str(las),
+                 "--threads", "2"]) == 0
+    planes = LaserPlanes.load(las)
+    assert set(planes.names) == {"A"}
+    n_t = np.array(truth["lasers"]["A"]["normal"])
+    p = planes["A"]
+    n, d = (p.normal, p.d) if p.normal @ n_t > 0 else (-p.normal, -p.d)
+    assert np.degrees(angle_between(n, n_t)) < 0.01
+    assert abs(d - truth["lasers"]["A"]["d"]) < 0.01

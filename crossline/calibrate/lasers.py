@@ -596,9 +596,9 @@ def _read_pose_images(view, shape, channel: str | None):
     """(lasers-off image or None, laser image, detection image or None) of one pose.
 
     Colour images: the stripe is measured on the laser's channel (``sensor.channel``, or the
-    channel where laser minus board is brightest); the board is found in the lasers-off
-    image's luminance, or with the laser always on in the other channel that shows the board
-    with most contrast and least stripe.
+    channel where laser minus board, brought to the laser image's exposure, is brightest); the
+    board is found in the lasers-off image's luminance, or with the laser always on in the
+    other channel that shows the board with most contrast and least stripe.
     """
     from crossline.io.images import read_image, read_image_channels
 
@@ -617,7 +617,11 @@ def _read_pose_images(view, shape, channel: str | None):
         score = []
         for j in range(3):
             ref = bc[:, :, j] if bc is not None and bc.shape[2] == 3 else remove_stripe(la[:, :, j])[0]
-            score.append(float(np.quantile(la[:, :, j].astype(np.float32) - ref, 0.999)))
+            # the laser image may be taken at another exposure than the board view: compare
+            # it with the board view brought to its exposure, as the stripe is measured
+            a, b = ambient_model(ref, la[:, :, j])
+            score.append(float(np.quantile(la[:, :, j].astype(np.float32) - (a * ref.astype(np.float32) + b),
+                                           0.999)))
         k = int(np.argmax(score))
     if bc is None:  # laser always on: the board in the other channel that shows it best
         best = max((j for j in range(3) if j != k), key=lambda j: float(np.std(la[::4, ::4, j])))
