@@ -765,3 +765,33 @@ def test_colour_scan_frames_are_measured_on_the_laser_s_channel(tmp_path) -> Non
     assert scan_channel([grey], None, (h, w))["name"] is None
     with pytest.raises(ValueError, match=r"000000\.png: image is 200x120 px, expected 100x120 px"):
         scan_channel(paths, None, (h, 100))
+
+
+def test_colour_capture_stage_measures_the_red_channel_and_gathers_the_choice(tmp_path):
+    """The stage on colour frames without ``sensor.channel``: the red laser's channel is chosen,
+    the centres are those of the same frames written grey, and the gathered file says which
+    channel and why."""
+    import shutil
+
+    from crossline.io.images import write_image
+    from crossline.scan.stripes import gather_stripes, read_stripes_meta, run_extract_stripes
+    from tests import scan_synth
+
+    scan_synth.make_capture(tmp_path / "grey", n_frames=4)
+    shutil.copytree(tmp_path / "grey", tmp_path / "rgb")
+    rng = np.random.default_rng(2)
+    for f in sorted((tmp_path / "rgb" / "scans" / "plate" / "frames").glob("*.png")):
+        g = cv2.imread(str(f), cv2.IMREAD_UNCHANGED).astype(float)
+        flat = np.full_like(g, 40.0) + rng.normal(0, 2.0, g.shape)  # green, blue: no stripe
+        rgb = np.dstack([g, flat, flat + 20.0])
+        f.unlink()
+        write_image(f, np.clip(np.round(rgb), 0, 255).astype(np.uint8))
+    run_extract_stripes(tmp_path / "grey", "plate", tmp_path / "g.parquet", extractor="gaussian")
+    part = tmp_path / "p.parquet"
+    run_extract_stripes(tmp_path / "rgb", "plate", part, extractor="gaussian")
+    gather_stripes([part], tmp_path / "rgb.parquet")
+    ch = read_stripes_meta(tmp_path / "rgb.parquet")["channel"]
+    assert ch["name"] == "red" and ch["source"].startswith("chosen")
+    a = pq.read_table(tmp_path / "g.parquet").to_pandas()
+    b = pq.read_table(tmp_path / "rgb.parquet").to_pandas()
+    assert len(a) == len(b) and np.array_equal(a["v"].to_numpy(), b["v"].to_numpy())

@@ -1957,7 +1957,7 @@ def gather_stripes(chunks: Iterable[str | Path], out: str | Path) -> dict[str, A
             counts[k] = counts.get(k, 0) + int(v)
     meta = {k: first[k] for k in ("scan", "extractor", "params", "scan_window", "frames_in_scan")}
     meta["counts"] = counts
-    for key in ("data_range",):
+    for key in ("data_range", "channel"):
         if key in first:
             meta[key] = first[key]
     for key in ("noise", "levels"):
