@@ -1,8 +1,10 @@
 """Sub-pixel chessboard corners: a blurred X-junction fitted to the pixels around each corner.
 
-OpenCV's corner refiners leave rendered chessboard corners about 0.03 px RMS from the true
-projected corners (``benchmarks/bench_corners.py``: 0.029-0.034 px on both rigs), several
-times the error of the circle grid's refined centres; this fit leaves 0.009-0.010 px.
+OpenCV's corner refiners (``findChessboardCornersSB``, ``cornerSubPix``) leave rendered
+chessboard corners several times further from the true projected corners than the circle
+grid's refined centres are from theirs; this fit removes most of that error
+(``python benchmarks/bench_corners.py`` prints each refiner's RMS error in px, full-sensor
+pixel coordinates, against the simulator's true corners on both presets).
 Here each corner is refined by fitting, by weighted least squares over the
 pixels of a window around it, the image of an ideal X-junction: two straight edges through
 the corner, the squares' two grey levels, a Gaussian blur, and shading that varies linearly

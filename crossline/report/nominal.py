@@ -57,10 +57,11 @@ COLOUR_MAP = "coolwarm"
 TUKEY_C = 4.685  # Tukey biweight constant: 95 % efficiency at Gaussian residuals
 MAD_TO_SIGMA = 1.4826
 # the fit's weakest motion constrained less than this fraction as strongly as its strongest
-# (rotations scaled by the cloud's RMS radius): the surface lets the pose slide along it.
-# Conservative: it also refuses patches that did fix the pose (random rig 6's quick part,
-# 3.5e-4, placed right against the truth); the paper quick part's top, placed wrong by
-# chance, was at 1.5e-4
+# (smallest over largest eigenvalue of the point-to-plane information, rotations scaled by
+# the cloud's RMS radius, so the ratio has no unit): the surface lets the pose slide along
+# it, and where RANSAC lands along that slide is chance. Conservative: it also refuses
+# nearly flat patches that did fix the pose. Each alignment records its ratio
+# (``weakest_mode_ratio``); docs/method.md says where the value comes from.
 WEAK_MODE_RATIO = 1e-3
 # the identity and half turns about x, y and z: the symmetric poses a coarse match may land in
 _HALF_TURNS = (np.eye(3), np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]),

@@ -2,11 +2,12 @@
 
 Two pieces:
 
-- :func:`decode_png`, a grey-PNG decoder about 2.5x faster than ``cv2.imdecode`` on scan
-  frames: libdeflate (through ``imagecodecs``) inflates, a numba kernel undoes the PNG row
-  filters. Both release the GIL. It handles what scan frames are (grey, 8 or 16 bit, not
-  interlaced) and hands anything else to ``cv2.imdecode``; it needs the optional packages
-  ``numba`` and ``imagecodecs`` and falls back to OpenCV without them. Identical pixels either
+- :func:`decode_png`, a grey-PNG decoder faster than ``cv2.imdecode`` on scan frames
+  (``python benchmarks/bench_scan.py`` prints both decoders' ms per frame): libdeflate
+  (through ``imagecodecs``) inflates, a numba kernel undoes the PNG row filters. Both
+  release the GIL. It handles what scan frames are (grey, 8 or 16 bit, not interlaced) and
+  hands anything else to ``cv2.imdecode``; it needs the optional packages ``numba`` and
+  ``imagecodecs`` and falls back to OpenCV without them. Identical pixels either
   way (PNG is lossless; the tests compare both decoders on every filter type). Each worker
   thread reuses its inflate and row buffers from frame to frame.
 - :func:`read_frame`, one frame file to a grey array: grey PNGs by :func:`decode_png`, every

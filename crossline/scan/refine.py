@@ -137,13 +137,13 @@ def usable_centres(laser: np.ndarray, width: np.ndarray,
 
     A cut much longer than its laser's typical one crosses the stripe where it runs steeply
     through the column (or two stripes merged), and a centre fitted along the column is
-    biased there: on the compact rig's ball, cuts over twice the median lie 0.13 (laser B) to
-    0.36 px (laser A) off the true centre line on average, the shorter ones 0.01-0.09 px
-    (benchmarks/bench_refine_bias.py). The Gaussian extractor's fit across steep stripes
-    (``stripes.fit_across``) takes those to 0.02-0.07 px, and with it this filter changes
-    the refined ball by no more than the arm draws' scatter; it stays for the other
-    extractors and for merged stripes. Such centres may still be measured points, but must
-    not decide a crossing. ``max_ratio`` 0 (or inf) keeps all; a NaN width is kept.
+    biased there, several times more than the centres of shorter cuts
+    (``python benchmarks/bench_refine_bias.py`` prints the centres' mean and RMS error in px,
+    along the column, against the true centre line by cut length). The Gaussian extractor's
+    fit across steep stripes (``stripes.fit_across``) removes most of that bias, and with it
+    this filter hardly changes the refined ball (docs/method.md, pose refinement); it stays
+    for the other extractors and for merged stripes. Such centres may still be measured
+    points, but must not decide a crossing. ``max_ratio`` 0 (or inf) keeps all; a NaN width is kept.
     """
     lab = np.asarray(laser)
     w = np.asarray(width, dtype=np.float64)
@@ -282,9 +282,10 @@ def find_crossings(
     step = np.linalg.norm(np.diff(po, axis=0), axis=1)
     along = sid[1:] == sid[:-1]
     spacing = float(np.median(step[along])) if along.any() else 0.05
-    # each laser's own point spacing: a stripe that runs steeply through the image, or meets
-    # the surface at a grazing angle, is sampled more sparsely than the other (random rig 1:
-    # 0.27 mm against 0.09)
+    # each laser's own point spacing (mm, between neighbouring points of a stripe): a
+    # stripe that runs steeply through the image, or meets the surface at a grazing angle,
+    # is sampled more sparsely than the other, by a factor of a few on some rigs
+    # (docs/method.md, pose refinement)
     sp = {}
     for code in (1, 2):
         m = along & (lo_[1:] == code)
@@ -292,8 +293,8 @@ def find_crossings(
     if radius_mm is None:
         radius_mm = max(0.1, 3.0 * spacing, sp[1], sp[2])
     # a quadratic needs its points: where a stripe is sampled sparsely (a camera of coarse
-    # resolution, 0.17 mm apart on random rig 0 against 0.05 on the paper's) its window grows
-    # to MIN_SPACINGS of them either side, else no crossing of such a rig is ever fitted
+    # resolution, or the steeper laser) its window grows to MIN_SPACINGS of them either side,
+    # else a HALF_MM window holds too few and no crossing of such a rig is ever fitted
     half = {code: max(half_mm, MIN_SPACINGS * sp[code]) for code in (1, 2)}
     tree = cKDTree(po[b])
     # every other A point is enough to seed: the crossing itself is found by the curve fits
