@@ -398,16 +398,29 @@ def read_ply(path: str | Path) -> dict[str, np.ndarray]:
     for ln in lines:
         parts = ln.split()
         if parts[:1] == ["element"]:
-            element = parts[1]
+            element = parts[1] if len(parts) > 1 else ""
             if element == "vertex":
+                if len(parts) != 3 or not parts[2].isdigit():
+                    raise ValueError(f"{path}: header line {ln!r}: expected 'element vertex <count>'")
                 n = int(parts[2])
             elif fields:
                 break  # vertices come first; later elements (faces) are not read
         elif parts[:1] == ["property"] and element == "vertex":
-            if parts[1] == "list":
+            if len(parts) > 1 and parts[1] == "list":
                 raise ValueError(f"{path}: list properties on vertices are not supported")
+            if len(parts) != 3 or parts[1] not in _PLY_DTYPES:
+                raise ValueError(f"{path}: header line {ln!r}: expected 'property <type> <name>' with "
+                                 f"a type among {sorted(_PLY_DTYPES)}")
             fields.append((parts[2], _PLY_DTYPES[parts[1]]))
-    arr = np.frombuffer(data, dtype=np.dtype(fields), count=n, offset=end + len(b"end_header\n"))
+    missing = [k for k in ("x", "y", "z") if k not in [f for f, _ in fields]]
+    if missing:
+        raise ValueError(f"{path}: the vertices have no {', '.join(missing)} property")
+    start = end + len(b"end_header\n")
+    size = np.dtype(fields).itemsize
+    if len(data) - start < n * size:
+        raise ValueError(f"{path}: truncated: the header declares {n} vertices of {size} bytes, the "
+                         f"file holds {(len(data) - start) // size} of them")
+    arr = np.frombuffer(data, dtype=np.dtype(fields), count=n, offset=start)
     out: dict[str, np.ndarray] = {
         "points": np.column_stack([arr[k].astype(np.float64) for k in ("x", "y", "z")])
     }
@@ -546,9 +559,13 @@ def run_fuse(
         raise StageError(f"{points}: cannot be read as parquet ({exc})") from exc
     missing = [c for c in ("x", "y", "z") if c not in df.columns]
     if missing:
-        raise StageError(f"{points}: missing column(s) {missing}; expected frame, laser, x, y, z, ...")
+        what = ("a stripes file (pixel centres u, v), not a points file: triangulate turns it into "
+                "points" if {"u", "v"} <= set(df.columns) else "expected frame, laser, x, y, z, ...")
+        raise StageError(f"{points}: missing column(s) {missing}; {what}")
     if len(df) == 0:
         raise StageError(f"{points}: has no points; nothing to fuse")
+    if table is not None:
+        _same_scan(points, Path(frames), len(table[0]))
     xyz = df[["x", "y", "z"]].to_numpy(np.float64)
     finite = np.isfinite(xyz).all(1)
     if not finite.any():
@@ -589,6 +606,24 @@ def run_fuse(
     if stats is not None:
         write_json(stats, cloud.stats)
     return cloud
+
+
+def _same_scan(points: Path, frames: Path, n_frames: int) -> None:
+    """Raise a StageError when ``frames`` (a frames.csv of ``n_frames`` rows) is not the table of
+    the scan ``points`` were triangulated from (as the points file's metadata says)."""
+    from crossline.scan.triangulate import read_points_meta
+
+    try:
+        meta = read_points_meta(points)
+    except (StageError, ValueError):  # a points file of another tool: nothing to compare with
+        return
+    scan, n = meta.get("scan"), meta.get("frames")
+    if frames.parent.parent.name == "scans" and scan is not None and frames.parent.name != scan:
+        raise StageError(f"{frames}: the frames table of scan {frames.parent.name!r}, but {points} "
+                         f"holds the points of scan {scan!r} (give --frames scans/{scan}/frames.csv)")
+    if isinstance(n, int) and n != n_frames:
+        raise StageError(f"{frames}: {n_frames} frames, but {points} was triangulated from the {n} "
+                         f"frames of scan {scan!r}: not that scan's frames table")
 
 
 def _read_frames(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -149,11 +149,34 @@ def break_capture(good: Path, dest: Path, fault: str) -> Path:
         _edit_csv(dest / "scans/gauge/frames.csv", 5, "qw", "0.5")
         poses = dest / "calibration/handeye/poses.csv"
         _rewrite(poses, "\n".join(poses.read_text().splitlines()[:-1]) + "\n")
+    elif fault == "nan_frame_pose":
+        # a scan frame's arm pose lost (the arm's log wrote nan)
+        _edit_csv(dest / "scans/plate/frames.csv", 4, "x", "nan")
     elif fault == "wrong_size":
         png = dest / "scans/part/frames/000002.png"
         small = read_image(png)[:-8]
         png.unlink()
         write_png(png, small)
+    elif fault == "wrong_size_view":
+        # calibration views 8 rows short: one camera view, one hand-eye view and every laser-on
+        # image (a laser pose with an image of another size is skipped, so all of them)
+        views = [dest / "calibration/camera/view_03.png", dest / "calibration/handeye/pose_02.png",
+                 *sorted((dest / "calibration").glob("laser_*/*_laser.png"))]
+        for png in views:
+            small = read_image(png)[:-8]
+            png.unlink()
+            write_png(png, small)
+    elif fault == "laser_views_blank":
+        # no laser view usable: laser A never fired (its laser-on images black), laser B's
+        # lasers-off views show no board (grey)
+        for png in (dest / "calibration/laser_A").glob("*_laser.png"):
+            _blank_png(png, 0)
+        for png in (dest / "calibration/laser_B").glob("*_board.png"):
+            _blank_png(png, 128)
+    elif fault == "board_views_blank":
+        # the board is found in no lasers-off view of the laser poses (grey images)
+        for png in (dest / "calibration").glob("laser_*/*_board.png"):
+            _blank_png(png, 128)
     elif fault == "rig_wrong_type":
         rig = dest / "rig.yaml"
         text = rig.read_text()

@@ -128,6 +128,35 @@ def _read_json(path: Path) -> dict | None:
     return data if isinstance(data, dict) else None
 
 
+def _finite(value: Any, shape: tuple[int, ...]) -> bool:
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        return False
+    return a.shape == shape and bool(np.isfinite(a).all())
+
+
+def calibration_problem(kind: str, data: dict) -> str | None:
+    """Why ``data`` (camera.json, lasers.json or handeye.json as read) lacks what the report
+    and the certificate read of a ``kind`` calibration, or None when it has it."""
+    if kind == "camera":
+        size, dist = data.get("image_size"), data.get("dist")
+        if not (_finite(data.get("K"), (3, 3)) and isinstance(dist, list) and _finite(dist, (len(dist),))
+                and isinstance(size, list) and len(size) == 2):
+            return "expected finite 'K' (3x3), 'dist' and 'image_size' [width, height]"
+    elif kind == "lasers":
+        for L in ("A", "B"):
+            if L == "A" or L in data:
+                pl = data.get(L)
+                if not (isinstance(pl, dict) and _finite(pl.get("normal"), (3,))
+                        and _finite(pl.get("d"), ()) and np.linalg.norm(pl["normal"]) > 0):
+                    return (f"expected the plane of laser {L} as {{'normal': [nx, ny, nz], 'd': d}}, "
+                            f"finite, the normal not zero")
+    elif kind == "handeye" and not _finite(data.get("T_tool_cam"), (4, 4)):
+        return "expected 'T_tool_cam', a finite 4x4 matrix"
+    return None
+
+
 def _sha256(path: Path) -> str:
     from crossline.io.provenance import file_sha256
 
@@ -991,6 +1020,10 @@ def build_report(
         if p.is_file():
             files.append(("interim", f"calibration/{k}.json", p))
         inputs[k] = _read_json(p)
+        why = calibration_problem(k, inputs[k]) if inputs[k] is not None else None
+        if why is not None:
+            log.warning("%s: not a %s calibration (%s); its section is left out", p, k, why)
+            inputs[k] = None
     if (interim_dir / "check.json").is_file():
         files.append(("interim", "check.json", interim_dir / "check.json"))
 

@@ -34,6 +34,7 @@ from crossline.report.accuracy import (
     _git_commit,
     _sha256,
     _validation,
+    calibration_problem,
 )
 
 __all__ = ["DEFAULT_LIMITS", "build_certificate", "coverage", "load_limits", "run_certificate"]
@@ -231,6 +232,9 @@ def build_certificate(
             from crossline.camera import Camera
 
             Camera.load(p)  # a usable model (finite K, dist) or a named error
+        why = calibration_problem(k, inputs[k])
+        if why is not None:
+            raise CrosslineError(f"{p}: not a {k} calibration file ({why})")
         files.append(("interim", f"calibration/{k}.json", p))
     truth = None
     if (capture / "truth.json").is_file():
