@@ -45,6 +45,8 @@ AREAS: dict[str, tuple[str, str]] = {
     "report": ("Report", "python benchmarks/bench_report.py"),
     "uncertainty": ("Coverage of the reports' U over seeded captures",
                     "python benchmarks/bench_uncertainty.py"),
+    "jpeg": ("JPEG frames against PNG: camera, plane angle and point sigma",
+             "python benchmarks/bench_jpeg.py"),
 }
 
 
