@@ -570,12 +570,16 @@ def _report(p: argparse.ArgumentParser) -> None:
                      help="the same from a JSON file")
     p.add_argument("--pdf", type=Path, required=True, help="accuracy.pdf to write")
     p.add_argument("--metrics", type=Path, required=True, help="metrics.json to write")
+    p.add_argument("--deviation-dir", type=Path, default=None,
+                   help="folder for <scan>.ply: each freeform scan compared with its nominal, "
+                        "coloured by deviation, with the deviation as a scalar field")
 
     def run(a: argparse.Namespace) -> int:
         from crossline.report.accuracy import run_report
 
         config = a.config_file if a.config_file is not None else a.config
-        run_report(a.capture, a.interim, a.processed, a.pdf, a.metrics, config=config)
+        run_report(a.capture, a.interim, a.processed, a.pdf, a.metrics, config=config,
+                   deviation_dir=a.deviation_dir)
         return 0
 
     p.set_defaults(func=run)

@@ -366,3 +366,41 @@ def test_nominal_comparison_and_its_page(tmp_path, report_data):
     text = " ".join(page_texts(page_nominal(m, "part", {"nominal": plots})))
     assert f"{fmt(nc['share_within_tolerance'], '%')} of {fmt(nc['n'])} points" in text
     assert "RANSAC on FPFH features" in text
+
+
+def test_deviation_cloud_is_the_compared_points_coloured_as_on_the_page(tmp_path, report_data):
+    """The report's coloured cloud of a freeform scan: the aligned points, their signed
+    deviation as a scalar field, coloured on the page's scale; a folder without a compared
+    scan is still made (the workflow's output)."""
+    import open3d as o3d
+
+    from crossline.report.accuracy import (
+        DEFAULT_METROLOGY,
+        DEFAULT_TOLERANCES,
+        ReportData,
+        _nominal_comparison,
+        deviation_limit_mm,
+        write_deviation_clouds,
+    )
+    from crossline.report.nominal import deviation_colours
+    from crossline.sim.part import write_stl
+    from tests.test_nominal import _part_mesh, _sample
+
+    V, F = _part_mesh()
+    write_stl(tmp_path / "part.stl", V, F)
+    rng = np.random.default_rng(7)
+    p, _ = _sample(V, F, 5000, rng)
+    nc, plots = _nominal_comparison(p + rng.normal(0.0, 0.004, p.shape), tmp_path / "part.stl",
+                                    DEFAULT_TOLERANCES, DEFAULT_METROLOGY)
+    data = ReportData({"scans": {"part": {"nominal_comparison": nc}, "plate": {}}},
+                      {"scans": {"part": {"nominal": plots}, "plate": {}}})
+    written = write_deviation_clouds(data, tmp_path / "dev")
+    assert written == [tmp_path / "dev" / "part.ply"]
+    pc = o3d.t.io.read_point_cloud(str(written[0]))
+    assert np.allclose(pc.point.positions.numpy(), plots["points"])
+    dev = pc.point.deviation.numpy().ravel()
+    assert np.array_equal(dev, plots["dev"]) and len(dev) > 4000
+    want = np.rint(deviation_colours(dev, deviation_limit_mm(dev, nc["tolerance_mm"])) * 255)
+    assert np.array_equal(pc.point.colors.numpy(), want.astype(np.uint8))
+    assert write_deviation_clouds(ReportData({"scans": {}}, {"scans": {}}), tmp_path / "none") == []
+    assert (tmp_path / "none").is_dir()

@@ -1161,17 +1161,48 @@ def build_report(
     return ReportData(to_jsonable(metrics), plots)
 
 
+def deviation_limit_mm(dev: np.ndarray, tolerance_mm: float) -> float:
+    """The colour scale's half range of a deviation map: twice the tolerance band, or the 99th
+    percentile of |deviation| where that is wider (the page and the coloured cloud share it)."""
+    return max(2.0 * float(tolerance_mm), float(np.nanpercentile(np.abs(dev), 99)))
+
+
+def write_deviation_clouds(data: ReportData, folder: Path) -> list[Path]:
+    """``<scan>.ply`` in ``folder`` for every freeform scan compared with its nominal: the
+    aligned points (the drawing's frame, mm) coloured by signed deviation on the page's scale,
+    the deviation itself as a ``deviation`` scalar field (CloudCompare reads it). The folder is
+    made even when no scan was compared, so that the workflow finds its output."""
+    from crossline.report.nominal import deviation_colours, write_coloured_ply
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name, sp in sorted(data.plots.get("scans", {}).items()):
+        nom = sp.get("nominal")
+        nc = data.metrics["scans"].get(name, {}).get("nominal_comparison")
+        if not nom or not nc or len(nom["dev"]) == 0:
+            continue
+        limit = deviation_limit_mm(nom["dev"], nc["tolerance_mm"])
+        path = folder / f"{name}.ply"
+        write_coloured_ply(path, nom["points"], deviation_colours(nom["dev"], limit), deviation=nom["dev"])
+        written.append(path)
+    return written
+
+
 def run_report(
     capture: Path, interim_dir: Path, processed_dir: Path, pdf: Path, metrics: Path, *,
-    config: Any = None,
+    config: Any = None, deviation_dir: Path | None = None,
 ) -> dict[str, Any]:
-    """The ``report`` stage: measure, then write ``metrics.json`` and ``accuracy.pdf``."""
+    """The ``report`` stage: measure, then write ``metrics.json`` and ``accuracy.pdf`` (and,
+    with ``deviation_dir``, the freeform scans' clouds coloured by deviation from nominal)."""
     from crossline.report.pages import render_pdf
 
     capture = Path(capture)
     if not (capture / "rig.yaml").is_file():
         raise CrosslineError(f"{capture}: not a capture folder (no rig.yaml)")
     data = build_report(capture, interim_dir, processed_dir, config)
+    if deviation_dir is not None:
+        write_deviation_clouds(data, deviation_dir)
     with atomic_path(pdf) as tmp:
         render_pdf(data, tmp)
     write_json(metrics, data.metrics)

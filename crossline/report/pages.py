@@ -989,6 +989,7 @@ def page_scan(m: dict[str, Any], name: str, plots: dict[str, Any]) -> Figure:
 
 def page_nominal(m: dict[str, Any], name: str, plots: dict[str, Any]) -> Figure:
     """A freeform scan against its nominal mesh: alignment, deviation map, histogram, regions."""
+    from crossline.report.accuracy import deviation_limit_mm
     from crossline.report.nominal import deviation_map_figure
 
     s = m["scans"][name]
@@ -1012,7 +1013,7 @@ def page_nominal(m: dict[str, Any], name: str, plots: dict[str, Any]) -> Figure:
            f"{fmt(nc.get('max_distance_mm'), 'mm', 1)} from it.", size=8.2)
     data = plots.get("nominal")
     if data is not None and len(data["dev"]):
-        limit = max(2.0 * float(nc["tolerance_mm"]), float(np.nanpercentile(np.abs(data["dev"]), 99)))
+        limit = deviation_limit_mm(data["dev"], nc["tolerance_mm"])
         top = p.y - 0.01
         deviation_map_figure(data["points"], data["dev"], limit, regions=data["regions"],
                              tolerance_mm=float(nc["tolerance_mm"]), fig=p.fig,

@@ -9,6 +9,7 @@ rule render_report:
     output:
         pdf="reports/{capture}/accuracy.pdf",
         metrics="reports/{capture}/metrics.json",
+        deviation=directory("reports/{capture}/deviation"),
     params:
         config=report_config(),
     log:
@@ -22,7 +23,7 @@ rule render_report:
     shell:
         "crossline report data/raw/{wildcards.capture} --interim data/interim/{wildcards.capture} "
         "--processed data/processed/{wildcards.capture} --config-json {params.config:q} "
-        "--pdf {output.pdf} --metrics {output.metrics} > {log} 2>&1"
+        "--pdf {output.pdf} --metrics {output.metrics} --deviation-dir {output.deviation} > {log} 2>&1"
 
 
 rule calibration_certificate:
