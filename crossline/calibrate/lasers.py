@@ -263,6 +263,7 @@ def stripe_points(
     margin_px: float = 4.0,
     bias_correction: bool = True,
     name: str = "laser image",
+    board_name: str | None = None,
     detect_image: np.ndarray | None = None,
     normalise_albedo: bool = True,
 ) -> PoseStripe:
@@ -274,20 +275,21 @@ def stripe_points(
     ``detect_image`` (default: the lasers-off image) is the image the board is found in, e.g.
     a colour channel that shows the board better than the laser's. ``normalise_albedo`` False
     keeps the board's albedo in the stripe (the whole window must then clear every edge). Raises
-    :class:`CalibrationError` naming ``name`` when the board or the stripe on it is not found.
+    :class:`CalibrationError` naming ``name`` when the stripe is not found, and ``board_name``
+    (the lasers-off image's file; default ``name``) when the board is not.
     """
     from crossline.scan.stripes import full_scale, grey_centre
 
     full_scale(laser_image.dtype)  # unsigned integers only
-    where = "lasers-off image"
+    where, name_board = "lasers-off image", board_name or name
     if board_image is None:
         board_image, _ = remove_stripe(laser_image)
-        where = "laser image (laser always on; stripe removed)"
+        where, name_board = "laser image (laser always on; stripe removed)", name
         if detect_image is not None:
             detect_image, _ = remove_stripe(detect_image)
     det = detect_board(board_image if detect_image is None else detect_image, board)
     if not det.found:
-        raise CalibrationError(f"{name}: {det.reason} in the {where} of this pose")
+        raise CalibrationError(f"{name_board}: {det.reason} in the {where} of this pose")
     pose = board_pose(camera, board, det.points, bias_correction=bias_correction)
     T = pose.T_cam_board
     n = T[:3, 2]
@@ -658,10 +660,11 @@ def run_calibrate_lasers(
 
     def one(view) -> tuple[Any, PoseStripe | None, str]:
         name = str(view.laser_image.relative_to(cap.root))
+        board_name = None if view.board_image is None else str(view.board_image.relative_to(cap.root))
         try:
             b, la, det = _read_pose_images(view, shape, channel)
             s = stripe_points(camera, board, b, la, threshold=threshold, margin_px=margin_px,
-                              name=name, detect_image=det)
+                              name=name, board_name=board_name, detect_image=det)
         except CrosslineError as exc:
             return view, None, str(exc)
         return view, s, ""
