@@ -146,6 +146,14 @@ def _simulate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--arm-noise-scale", type=_non_negative, default=1.0, metavar="K",
                    help="the arm's reported-pose noise times K (default 1)")
     p.add_argument("--scans", help="comma-separated subset of the preset's scans")
+    p.add_argument("--dent", type=float, metavar="MM",
+                   help="press a dent MM deep into the freeform part (not into its nominal "
+                        "mesh): a defect for the report's nominal comparison to find")
+    p.add_argument("--dent-sigma", type=float, default=2.5, metavar="MM",
+                   help="the dent's width, the sigma of its Gaussian profile (default 2.5 mm)")
+    p.add_argument("--nominal-datum", action="store_true",
+                   help="rig.yaml gives each freeform part's placement (nominal_pose), as probed "
+                        "with the arm, with the arm's error")
     p.add_argument("--board", type=_board_spec, metavar="SPEC",
                    help="calibration board instead of the preset's: pattern:COLSxROWS:spacing"
                         "[:diameter[:dark|light]], e.g. chessboard:12x9:4 (inner corners, square mm) "
@@ -167,6 +175,7 @@ def _simulate(p: argparse.ArgumentParser) -> None:
             lasers=a.lasers.split(",") if a.lasers else None, image_format=a.image_format,
             jpeg_quality=a.jpeg_quality, colour=a.colour, laser_always_on=a.laser_always_on,
             calibration_only=a.calibration_only, arm_noise_scale=a.arm_noise_scale, parts=parts,
+            dent_mm=a.dent, dent_sigma_mm=a.dent_sigma, nominal_datum=a.nominal_datum,
         )
         return 0
 

@@ -962,3 +962,35 @@ def test_foreign_laser_states_one_problem_per_state(capture: Path) -> None:
             f"lasers: [A]) (and 1 more row(s): lines 6)") in msg
     assert f"{FRAMES}, line 4: laser state 'AB' names laser B" in msg
     assert len(info.value.problems) == 4  # two states in each of two scans
+
+
+def test_nominal_pose_is_the_parts_placement(capture: Path) -> None:
+    (capture / "part.stl").write_text("solid part\nendsolid part\n")
+    c, s = float(np.cos(np.radians(15.0))), float(np.sin(np.radians(15.0)))
+    edit_rig(capture, lambda d: d["scans"].__setitem__("plate", {
+        "artefact": "freeform", "nominal": "part.stl",
+        "nominal_pose": [600.0, 60.0, -2.5, c, 0.0, 0.0, s]}))
+    T = read_rig(capture / "rig.yaml").scans["plate"].T_base_nominal
+    # a turn of 30 degrees about z, then the shift (quaternion (cos 15°, 0, 0, sin 15°))
+    assert np.allclose(T[:3, 3], [600.0, 60.0, -2.5])
+    assert np.isclose(np.degrees(np.arctan2(T[1, 0], T[0, 0])), 30.0)
+    assert read_rig(capture / "rig.yaml").scans["gauge"].T_base_nominal is None
+
+
+@pytest.mark.parametrize(("pose", "mesh", "expected"), [
+    ([1, 2, 3, 1, 0, 0], "part.stl", "'scans.plate.nominal_pose' must be [x, y, z, qw, qx, qy, qz]"),
+    ([1, 2, 3, 1, 0, 0, ".nan"], "part.stl", "'scans.plate.nominal_pose' must be [x, y, z, qw, qx, qy, qz]"),
+    ([1, 2, 3, 1, 0, 0, True], "part.stl", "'scans.plate.nominal_pose' must be [x, y, z, qw, qx, qy, qz]"),
+    ([1, 2, 3, 0.9, 0, 0, 0], "part.stl", "quaternion [0.9, 0, 0, 0] has length 0.900000; expected 1"),
+    ([1, 2, 3, 1, 0, 0, 0], None, "'scans.plate.nominal_pose' places a nominal mesh: only a freeform"),
+])
+def test_nominal_pose_refused(capture: Path, pose, mesh, expected: str) -> None:
+    (capture / "part.stl").write_text("solid part\nendsolid part\n")
+    pose = [float("nan") if v == ".nan" else v for v in pose]
+    spec = {"artefact": "freeform", "nominal_pose": pose} | ({"nominal": mesh} if mesh else {})
+    edit_rig(capture, lambda d: d["scans"].__setitem__("plate", spec))
+    msg = problems_of(capture)
+    assert expected in msg
+    lines = (capture / "rig.yaml").read_text().splitlines()
+    line = next(i for i, t in enumerate(lines, 1) if t.strip().startswith("nominal_pose:"))
+    assert f"rig.yaml, line {line}: 'scans.plate.nominal_pose'" in msg

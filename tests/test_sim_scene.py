@@ -230,3 +230,72 @@ def test_differs_at_sees_every_other_neighbour():
                 if (dy or dx) and 0 <= rr < H and 0 <= cc < W and code[rr, cc] not in (ignore, code[r, c]):
                     want[k] = True
     assert np.array_equal(got, want) and want.any() and not want.all()
+
+
+def test_a_dent_is_pressed_into_hits_normals_sections_and_the_truth_mesh():
+    """A 0.1 mm Gaussian dent: rays meet the surface that deep below the design's, in the
+    camera frame too; sections and the truth mesh lie on it; the design elsewhere is untouched."""
+    import dataclasses
+
+    from crossline.sim.scene import Dent
+
+    rig = PRESETS["paper"]
+    spec = next(s for s in rig.scans if s.artefact == "freeform")
+    spec = dataclasses.replace(spec, params={**spec.params, "dent": {
+        "depth_mm": 0.1, "sigma_mm": 2.0, "at": (0.3, -0.2)}})
+    part = freeform_part(rig, spec)
+    plain = dataclasses.replace(part, dent=None)
+    dent = part.dent
+    assert isinstance(dent, Dent) and abs(plain.gauge(plain.to_unit(dent.centre[None]))[0] - 1) < 1e-12
+    # vertical rays over the dent: the hit lies below the design's by the dent's depth there,
+    # measured along the design normal (~vertical on the top: the ray's own length differs by
+    # 1/cos of the normal's tilt)
+    rng = np.random.default_rng(1)
+    xy = dent.centre[:2] + rng.uniform(-7.0, 7.0, (400, 2))
+    o = np.column_stack([xy, np.full(len(xy), dent.centre[2] + 50.0)])
+    d = np.tile([0.0, 0.0, -1.0], (len(o), 1))
+    t0, _ = plain.intersect(o, d, 0.0)
+    t1, face = part.intersect(o, d, 0.0)
+    assert np.isfinite(t0).all() and np.isfinite(t1).all() and (face == 0).all()
+    P0 = o + t0[:, None] * d
+    n0 = plain.normal(P0, face)
+    expect = dent.depth(P0) / n0[:, 2]
+    # (to first order: the dent's own slope, up to 0.03 here, moves the hit sideways)
+    assert np.abs((t1 - t0) - expect).max() < 1e-3 and (t1 - t0).max() > 0.095
+    assert np.abs(part.dent_function(o + t1[:, None] * d)).max() < 1e-9
+    # the same in a camera frame
+    T = np.linalg.inv(arm.scan_trajectory(rig, spec, part.c + np.array([0, 0, 20.0]), 3)[1][1])
+    tc, _ = part.transformed(T).intersect(o @ T[:3, :3].T + T[:3, 3], d @ T[:3, :3].T, 0.0)
+    assert np.allclose(tc, t1, atol=1e-9)
+    # inside: just under the dented surface yes, between it and the design surface no
+    P1 = o + t1[:, None] * d
+    deep = dent.depth(P1) > 0.01
+    up = np.array([0.0, 0.0, 1.0])
+    assert part.inside(P1 - 1e-4 * up).all()
+    assert not part.inside(P1[deep] + 0.005 * up).any()
+    assert plain.inside(P1[deep] + 0.005 * up).all()
+    # a section through the dent lies in its plane and on the dented surface
+    n_pl = np.array([0.6, 0.8, 0.0])
+    (curve,) = part.sections(n_pl, -n_pl @ dent.centre)
+    Pc, Nc, _ = curve.fn(np.linspace(0, 2 * np.pi, 4000))
+    near = dent.near(Pc)
+    assert near.sum() > 50
+    assert np.abs(Pc @ n_pl - n_pl @ dent.centre).max() < 1e-9
+    assert np.abs(part.dent_function(Pc[near])).max() < 1e-9
+    assert np.allclose(Nc[near], part.normal(Pc[near], np.zeros(int(near.sum()), np.int8)))
+    # the truth mesh: vertices on the dented surface, triangles within 0.5 um of it
+    V, F = part_mesh(part)
+    Vp, _ = part_mesh(plain)
+    on = dent.near(V)
+    assert np.abs(part.dent_function(V[on])).max() < 1e-9
+    tri = V[F]
+    c = tri.mean(1)
+    close = dent.near(c)
+    nrm = np.cross(tri[close, 1] - tri[close, 0], tri[close, 2] - tri[close, 0])
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    tt, _ = part.intersect(c[close] + nrm, -nrm, 0.0)
+    assert np.abs(tt - 1.0).max() < 0.5e-3
+    # away from the dent the mesh is the design's
+    far = ~dent.near(Vp) & (np.linalg.norm(Vp - dent.centre, axis=1) > 6 * dent.sigma_mm)
+    assert far.sum() > 0.5 * len(Vp)
+    assert len(np.intersect1d(Vp[far].view("f8,f8,f8"), V.view("f8,f8,f8"))) == far.sum()

@@ -154,6 +154,17 @@ class ScanSpec:
     artefact: str
     nominal: dict[str, float] = field(default_factory=dict)
     mesh: str | None = None
+    # a freeform's placement (x, y, z, qw, qx, qy, qz; mm): its drawing's frame in the arm's
+    # base frame, as probed on its datums; the nominal comparison then starts from it
+    nominal_pose: tuple[float, ...] | None = None
+
+    @property
+    def T_base_nominal(self) -> np.ndarray | None:
+        """The placement as a 4x4 transform (mm), or None when rig.yaml gives none."""
+        if self.nominal_pose is None:
+            return None
+        v = np.asarray(self.nominal_pose, dtype=np.float64)
+        return transform_from_pose(v[:3], v[3:])
 
 
 @dataclass(frozen=True)
@@ -487,6 +498,23 @@ def read_rig(path: str | Path) -> Rig:
                 if why is not None:
                     r.bad(f"'{where}.nominal' = {_short(mesh)} {why}", at)
                     mesh = None
+        pose = None
+        if "nominal_pose" in spec:
+            at = ("scans", str(name), "nominal_pose")
+            v = spec["nominal_pose"]
+            if kind != "freeform" or mesh is None:
+                r.bad(f"'{where}.nominal_pose' places a nominal mesh: only a freeform with a "
+                      f"'nominal' takes it", at)
+            elif (not isinstance(v, list) or len(v) != 7
+                  or not all(isinstance(x, int | float) and not isinstance(x, bool)
+                             and math.isfinite(x) for x in v)):
+                r.bad(f"'{where}.nominal_pose' must be [x, y, z, qw, qx, qy, qz] (mm, the "
+                      f"drawing's frame in the arm's base frame), got {_short(v)}", at)
+            elif abs(math.hypot(*v[3:]) - 1.0) > 1e-3:
+                r.bad(f"'{where}.nominal_pose' quaternion {v[3:]} has length "
+                      f"{math.hypot(*v[3:]):.6f}; expected 1 (within 1e-3)", at)
+            else:
+                pose = tuple(float(x) for x in v)
         nominal = {}
         for key in ARTEFACTS[kind]:
             if key not in spec:
@@ -497,13 +525,13 @@ def read_rig(path: str | Path) -> Rig:
             v = r.number(spec, where, key, float, lo=1e-9)
             if v is not None:
                 nominal[key] = v
-        known = ("artefact", "nominal", *ARTEFACTS[kind])
+        known = ("artefact", "nominal", "nominal_pose", *ARTEFACTS[kind])
         for k in spec:
             if k not in known:
                 near = _near(str(k), known)
                 if near is not None:
                     r.bad(f"unknown key '{where}.{k}' (misspelt '{where}.{near}'?)")
-        scans[str(name)] = ScanSpec(str(name), kind, nominal, mesh)
+        scans[str(name)] = ScanSpec(str(name), kind, nominal, mesh, pose)
     if r.problems:
         raise CaptureError(root, r.problems)
     extra = {k: v for k, v in data.items() if k not in (*_RIG_KEYS, "scans", "lasers")}

@@ -189,6 +189,7 @@ class ScanData:
     points_path: Path | None = None
     points_info: dict | None = None
     mesh: str | None = None  # a freeform's nominal mesh, relative to the capture
+    T_base_nominal: np.ndarray | None = None  # its placement as rig.yaml gives it (a datum)
     plots: dict[str, Any] = field(default_factory=dict)
 
 
@@ -250,7 +251,8 @@ def _load_scan(
 
     from crossline.fuse import read_ply
 
-    sd = ScanData(name, spec.artefact, dict(spec.nominal), mesh=getattr(spec, "mesh", None))
+    sd = ScanData(name, spec.artefact, dict(spec.nominal), mesh=getattr(spec, "mesh", None),
+                  T_base_nominal=getattr(spec, "T_base_nominal", None))
     if sd.mesh and (root / sd.mesh).is_file():
         files.append(("capture", sd.mesh, root / sd.mesh))
     fcsv = root / "scans" / name / "frames.csv"
@@ -374,13 +376,20 @@ def _basis(up: np.ndarray) -> np.ndarray:
     return plane_basis(up)
 
 
-def _nominal_comparison(P: np.ndarray, mesh: Path, tol: dict, met: dict) -> tuple[dict, dict]:
+def _nominal_comparison(P: np.ndarray, mesh: Path, tol: dict, met: dict,
+                        T_base_nominal: np.ndarray | None = None,
+                        frames: np.ndarray | None = None) -> tuple[dict, dict]:
     """A freeform cloud (base frame) against its nominal mesh: alignment, signed deviations
-    within the tolerance band, the out-of-tolerance regions; and the arrays of its page."""
+    within the tolerance band, the out-of-tolerance regions; and the arrays of its page.
+
+    ``T_base_nominal`` (rig.yaml's ``nominal_pose``, the part's placement probed on its datums)
+    starts the fine alignment in place of the feature-based search, which a part's symmetry or
+    a nearly flat patch leaves ambiguous."""
     from crossline.report import nominal as nm
 
     V, F = nm.load_nominal(mesh)
-    al = nm.align_to_nominal(P, V, F, seed=int(met["seed"]))
+    initial = None if T_base_nominal is None else np.linalg.inv(T_base_nominal)
+    al = nm.align_to_nominal(P, V, F, seed=int(met["seed"]), initial=initial)
     if al["ambiguous"]:
         why = (f"{al['rival_poses']} other pose(s) fit the scanned surface as well but place it "
                "elsewhere on the part" if al["rival_poses"] else
@@ -404,7 +413,8 @@ def _nominal_comparison(P: np.ndarray, mesh: Path, tol: dict, met: dict) -> tupl
         keep &= ~on_support
     band = float(tol["nominal_band_mm"])
     summ = nm.deviation_summary(dev[keep], tolerance_mm=band, points=Q[keep],
-                                max_distance_mm=float(met["freeform_max_distance_mm"]))
+                                max_distance_mm=float(met["freeform_max_distance_mm"]),
+                                frames=None if frames is None else np.asarray(frames)[keep])
     out = {
         "nominal": mesh.name, "triangles": len(F),
         "alignment": {k: v for k, v in al.items() if k != "T_nominal_cloud"},
@@ -568,7 +578,7 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
             if sd.mesh:
                 try:
                     out["nominal_comparison"], sd.plots["nominal"] = _nominal_comparison(
-                        P, root / sd.mesh, tol, met)
+                        P, root / sd.mesh, tol, met, sd.T_base_nominal, sd.cloud.get("frame"))
                 except (CrosslineError, ValueError) as exc:
                     out["nominal_error"] = str(exc)
                     log.warning("scan %s: no comparison with its nominal: %s", sd.name, exc)

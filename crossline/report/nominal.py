@@ -483,18 +483,52 @@ def _regions(
             dv = dev[members]
             a = np.abs(dv)
             j = int(np.argmax(a))
-            top = np.sort(a)[::-1][: max(1, math.ceil(0.1 * len(a)))]
+            deep = np.argsort(a, kind="stable")[::-1][: max(1, math.ceil(0.1 * len(a)))]
             out.append({
                 "n": len(members),
                 "centroid_mm": points[members].mean(0).tolist(),
                 "extreme_mm": float(dv[j]),
                 "extreme_at_mm": points[members[j]].tolist(),
-                "depth_mm": float(np.sign(dv[j]) * np.median(top)),
+                "depth_mm": float(np.sign(dv[j]) * np.median(a[deep])),
+                # where it is deepest: less noisy than the extreme point, and unlike the
+                # centroid not pulled aside where the stripes cross one side of the defect
+                "depth_at_mm": points[members[deep]].mean(0).tolist(),
             })
     out.sort(key=lambda g: (-abs(g["extreme_mm"]), g["centroid_mm"]))
     for i, g in enumerate(out, start=1):
         g["id"] = i
     return out
+
+
+def line_gap_mm(points: np.ndarray, frames: np.ndarray, probes: int = 4000, seed: int = 0) -> float:
+    """How far apart a line scan's lines lie: twice the 95th percentile, over sampled points, of
+    the distance to the nearest point of another frame (a point between two lines is at most
+    half their spacing from one; mm; 0 with fewer than two frames).
+
+    A scan samples densely along each stripe and sparsely across them; a defect seen on
+    neighbouring stripes is one defect. The nearest point of another frame is found with trees
+    of random halves of the frames (eight draws: any one other frame falls in the probe's
+    opposite half at least once with probability 1 - 2^-8)."""
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    f = np.asarray(frames).reshape(-1)
+    uniq, fi = np.unique(f, return_inverse=True)
+    if len(uniq) < 2:
+        return 0.0
+    rng = np.random.default_rng(seed)
+    pick = rng.choice(len(p), min(probes, len(p)), replace=False)
+    best = np.full(len(pick), np.inf)
+    for _ in range(8):
+        half = rng.integers(0, 2, len(uniq)).astype(bool)[fi]
+        for side in (False, True):
+            mine = np.flatnonzero(half[pick] == side)
+            other = p[half != side]
+            if len(mine) and len(other):
+                d, _ = cKDTree(other).query(p[pick[mine]])
+                best[mine] = np.minimum(best[mine], d)
+    best = best[np.isfinite(best)]
+    return 2.0 * float(np.percentile(best, 95)) if best.size else 0.0
 
 
 def deviation_summary(
@@ -505,15 +539,18 @@ def deviation_summary(
     n_largest: int = 10,
     cluster_radius_mm: float | None = None,
     max_distance_mm: float | None = None,
+    frames: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Statistics of signed deviations (mm) and the largest out-of-tolerance regions, JSON-ready.
 
     Points farther than ``max_distance_mm`` (when given) are not on the part (table,
     fixture) and, with non-finite deviations, are left out of everything but ``n_excluded``.
     With ``points`` (N, 3), the points beyond ±``tolerance_mm`` are grouped into regions:
-    connected within ``cluster_radius_mm`` (default: 5 median point spacings), excess and
+    connected within ``cluster_radius_mm`` (default: 5 median point spacings, or with
+    ``frames`` (N,), each point's frame, the scan's :func:`line_gap_mm` where larger), excess and
     lack apart; each has its centroid, point count, extreme deviation and its location, and
-    a robust depth (the median of its 10 % largest deviations, signed). The ``n_largest``
+    a robust depth (the median of its 10 % largest deviations, signed) and where that is
+    (``depth_at_mm``, the mean of those points). The ``n_largest``
     regions with the largest extreme deviation are returned, largest first (``n_regions``
     counts them all).
     """
@@ -564,6 +601,11 @@ def deviation_summary(
             nn, _ = cKDTree(p).query(probe, k=2)
             spacing = float(np.median(nn[:, 1]))
         radius = 5.0 * spacing
+        if frames is not None:
+            # a defect that neighbouring stripes cross is one region, however far apart they lie
+            gap = line_gap_mm(p, np.asarray(frames).reshape(-1)[keep])
+            out["line_gap_mm"] = gap
+            radius = max(radius, gap)
     else:
         radius = float(cluster_radius_mm)
     regions = _regions(p, d, np.abs(d) > tol, radius)

@@ -1023,11 +1023,12 @@ def page_nominal(m: dict[str, Any], name: str, plots: dict[str, Any]) -> Figure:
     if regions:
         p.text(f"Regions beyond ±{nc['tolerance_mm']:g} mm ({fmt(nc.get('n_regions'))} in all; "
                "the largest, numbered as on the map; depth: median of the region's 10 % most "
-               "extreme points)", size=9, weight="bold")
-        rows = [[str(g["id"]), fmt(g["n"]), ", ".join(f"{v:.2f}" for v in g["centroid_mm"]),
+               "extreme points, at their mean)", size=9, weight="bold")
+        rows = [[str(g["id"]), fmt(g["n"]),
+                 ", ".join(f"{v:.2f}" for v in g.get("depth_at_mm", g["centroid_mm"])),
                  fmt(g["extreme_mm"], "mm", signed=True), fmt(g["depth_mm"], "mm", signed=True)]
                 for g in regions]
-        p.table(["#", "points", "centroid (nominal frame, mm)", "extreme", "depth"], rows,
+        p.table(["#", "points", "deepest at (nominal frame, mm)", "extreme", "depth"], rows,
                 [LEFT, LEFT + 0.05, LEFT + 0.16, LEFT + 0.5, LEFT + 0.68],
                 aligns=["left", "right", "left", "right", "right"], size=7.6)
     else:

@@ -85,6 +85,9 @@ LASER_STATES = ("A", "B", "AB", "off")
 PARTS = ("camera", "lasers", "handeye", "scans")  # what a capture may hold
 IMAGE_FORMATS = {"png": ".png", "jpeg": ".jpg", "tiff": ".tif", "bmp": ".bmp"}
 EIGHT_BIT_ONLY = ("jpeg", "bmp")
+DENT_SIGMA_MM = 2.5  # a dent's default width (Gaussian sigma): a pressed-in defect of ~6 mm
+DENT_AT = (0.35, 0.2)  # its plan position on the unit part: on the top, off its middle
+DATUM_BASELINE_MM = 40.0  # how far apart the probed datum features of a part are
 NOMINAL_TOL_MM = 1e-3  # chordal tolerance of a freeform's nominal STL, as a CAD export sets it
 ALWAYS_ON_AMBIENT = 0.5  # laser-on poses without a twin: room light at this share of the board views'
 KIND_CAMERA, KIND_LASER, KIND_HANDEYE, KIND_SCAN = 1, 2, 3, 4
@@ -101,6 +104,7 @@ class Output:
     jpeg_quality: int = 95
     colour: str | None = None  # the laser's channel of a colour (Bayer) sensor
     always_on: bool = False
+    nominal_datum: bool = False  # rig.yaml gives each freeform's placement (nominal_pose)
 
 
 @dataclass
@@ -319,6 +323,9 @@ def simulate(
     calibration_only: bool = False,
     arm_noise_scale: float = 1.0,
     parts: tuple[str, ...] | list[str] | None = None,
+    dent_mm: float | None = None,
+    dent_sigma_mm: float = DENT_SIGMA_MM,
+    nominal_datum: bool = False,
 ) -> Path:
     """Render a complete capture folder of a virtual rig at ``out``; return its path.
 
@@ -339,6 +346,14 @@ def simulate(
     * ``parts``: which of camera, lasers, handeye, scans to write (default all);
       ``calibration_only`` drops scans (no ``scans:`` in rig.yaml);
     * ``arm_noise_scale``: the arm's reported-pose noise times this (position and rotation).
+
+    ``dent_mm``: every freeform part gets a dent this deep (Gaussian profile of
+    ``dent_sigma_mm``, on the part's top where its scan sweeps) that its nominal mesh does not
+    have: a defect for the nominal comparison to find (truth.json: the scan's ``dent``).
+    ``nominal_datum``: rig.yaml gives each freeform's placement on the table
+    (``nominal_pose``), as a user measures it by probing the part's datums with the arm: the
+    true placement with a probing error drawn from the arm's precision (truth.json: the
+    scan's ``nominal_pose_error``).
     """
     rig = _resolve(preset, int(seed))
     if board is not None:
@@ -393,6 +408,16 @@ def simulate(
         rig = dataclasses.replace(rig, arm=dataclasses.replace(
             a, precision_mm=a.precision_mm * arm_noise_scale,
             rot_sigma_rad=a.rot_sigma_rad * arm_noise_scale))
+    if dent_mm is not None:
+        if not (0.0 < float(dent_mm) <= 2.0 and 0.2 <= float(dent_sigma_mm) <= 20.0):
+            raise CrosslineError(f"a dent {dent_mm} mm deep of sigma {dent_sigma_mm} mm: expected a "
+                                 "depth in (0, 2] mm and a sigma in [0.2, 20] mm")
+        if not any(sp.artefact == "freeform" for sp in rig.scans):
+            raise CrosslineError(f"preset {rig.name} has no freeform part to put a dent in")
+        dent = {"depth_mm": float(dent_mm), "sigma_mm": float(dent_sigma_mm), "at": DENT_AT}
+        rig = dataclasses.replace(rig, scans=tuple(
+            dataclasses.replace(sp, params={**sp.params, "dent": dent})
+            if sp.artefact == "freeform" else sp for sp in rig.scans))
     parts = tuple(PARTS if parts is None else parts)
     unknown = sorted(set(parts) - set(PARTS))
     if unknown or not parts:
@@ -410,16 +435,23 @@ def simulate(
     if frames is not None and frames < 1:
         raise CrosslineError(f"frames must be >= 1, got {frames}")
     output = Output(data_bits=None if dbits == bits else dbits, ext=IMAGE_FORMATS[image_format],
-                    jpeg_quality=int(jpeg_quality), colour=colour, always_on=bool(laser_always_on))
+                    jpeg_quality=int(jpeg_quality), colour=colour, always_on=bool(laser_always_on),
+                    nominal_datum=bool(nominal_datum))
     options = {"parts": list(parts), "image_format": image_format, "colour": colour,
                "laser_always_on": bool(laser_always_on), "arm_noise_scale": float(arm_noise_scale),
                "lasers": list(rig_lasers), "data_bits": dbits}
     if image_format == "jpeg":
         options["jpeg_quality"] = int(jpeg_quality)
+    if nominal_datum:
+        options["nominal_datum"] = True
+    if dent_mm is not None:
+        options["dent_mm"] = float(dent_mm)
+        options["dent_sigma_mm"] = float(dent_sigma_mm)
     notes = ([f"laser {rig_lasers[0]} only"] if len(rig_lasers) == 1 else []) + (
         [f"colour sensor, {colour} laser"] if colour else []) + (
         ["laser always on"] if laser_always_on else []) + (
-        [f"arm noise x{arm_noise_scale:g}"] if arm_noise_scale != 1.0 else [])
+        [f"arm noise x{arm_noise_scale:g}"] if arm_noise_scale != 1.0 else []) + (
+        [f"a {dent_mm:g} mm dent in the freeform part"] if dent_mm is not None else [])
     if notes:
         rig = dataclasses.replace(rig, description=f"{rig.description}; {', '.join(notes)}")
     if out.exists():
@@ -506,6 +538,7 @@ def _render_all(rig: RigPreset, root: Path, seed: int, quick: bool, frames: int 
 
     # scans
     scan_truth: dict[str, Any] = {}
+    datums: dict[str, list[float]] = {}
     scan_tables: dict[str, list] = {}
     scan_stats: dict[str, list] = {}
     frame_rows: dict[str, list] = {}
@@ -626,10 +659,14 @@ def _render_all(rig: RigPreset, root: Path, seed: int, quick: bool, frames: int 
             # its drawing: the design surface in the part's own frame, exported as a CAD
             # system would (an STL within NOMINAL_TOL_MM of the surface)
             T = nominal_frame(rig, spec)
-            Vn, Fn = part_mesh(freeform_part(rig, spec), NOMINAL_TOL_MM)
+            # (the drawing has no dent: a dent is the defect the comparison is to find)
+            Vn, Fn = part_mesh(dataclasses.replace(freeform_part(rig, spec), dent=None), NOMINAL_TOL_MM)
             write_stl(root / f"{name}.stl", (Vn - T[:3, 3]) @ T[:3, :3], Fn,
                       f"crossline virtual rig: nominal of scan {name}, mm")
             scan_truth[name]["T_base_nominal"] = T.tolist()
+            if output.nominal_datum:
+                datums[name], scan_truth[name]["nominal_pose_error"] = _probed_datum(
+                    T, rig, _rng(seed, 92, rig.scans.index(spec)))
 
     truth = _truth_json(rig, seed, quick, bits, pattern, truth_cal, scan_truth, output)
     defaults = {"parts": list(PARTS), "image_format": "png", "colour": None,
@@ -643,7 +680,7 @@ def _render_all(rig: RigPreset, root: Path, seed: int, quick: bool, frames: int 
     if rig.draw is not None:
         truth["rig_draw"] = rig.draw
     write_json(root / "truth.json", truth)
-    _write_rig_yaml(root / "rig.yaml", rig, bits, scan_names, output, "scans" in parts)
+    _write_rig_yaml(root / "rig.yaml", rig, bits, scan_names, output, "scans" in parts, datums)
 
 
 def _write_csv(path: Path, header: list[str], rows: list[list[str]]) -> None:
@@ -705,8 +742,25 @@ def _truth_json(rig: RigPreset, seed: int, quick: bool, bits: int, pattern: list
     }
 
 
+def _probed_datum(T_base_nominal: np.ndarray, rig: RigPreset,
+                  rng: np.random.Generator) -> tuple[list[float], dict[str, Any]]:
+    """A freeform's placement as ``nominal_pose`` (x, y, z, qw, qx, qy, qz), probed with the
+    arm: off by the arm's per-axis error, and turned by it over the datums' baseline."""
+    from crossline.geometry import make_transform, rotvec_to_matrix
+
+    dt = rng.normal(0.0, rig.arm.sigma_axis_mm, 3)
+    dr = rng.normal(0.0, rig.arm.sigma_axis_mm / DATUM_BASELINE_MM, 3)
+    T = make_transform(rotvec_to_matrix(dr), dt) @ T_base_nominal
+    p, q = transform_to_pose(T)
+    error = {"translation_mm": dt.tolist(), "rotation_rad": dr.tolist(),
+             "model": f"arm per-axis sigma {rig.arm.sigma_axis_mm:.4g} mm, turned by it over "
+                      f"{DATUM_BASELINE_MM:g} mm"}
+    return [round(float(v), 6) for v in (*p, *q)], error
+
+
 def _write_rig_yaml(path: Path, rig: RigPreset, bits: int, scan_names: list[str],
-                    output: Output = Output(), with_scans: bool = True) -> None:
+                    output: Output = Output(), with_scans: bool = True,
+                    datums: dict[str, list[float]] | None = None) -> None:
     s = rig.sensor
     x, y, w, h = s.scan_window
     scans = {}
@@ -716,6 +770,8 @@ def _write_rig_yaml(path: Path, rig: RigPreset, bits: int, scan_names: list[str]
         entry: dict[str, Any] = {"artefact": spec.artefact}
         if spec.artefact == "freeform":
             entry["nominal"] = f"{spec.name}.stl"
+            if datums and spec.name in datums:
+                entry["nominal_pose"] = datums[spec.name]
         if spec.artefact == "gauge_block":
             entry["height"] = float(spec.params["height"])
         if spec.artefact == "sphere":

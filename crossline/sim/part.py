@@ -90,6 +90,42 @@ def part_mesh(part: FreeformPart, tol_mm: float = 0.2e-3) -> tuple[np.ndarray, n
         faces.append(np.stack([a, d, b], 1))
         faces.append(np.stack([a, c, d], 1))
     F = np.vstack(faces)  # counter-clockwise seen from outside: normals point out
+    if part.dent is not None:
+        V, F = _dented(part, V, F, tol_mm)
+    return V, F
+
+
+def _dented(part: FreeformPart, V: np.ndarray, F: np.ndarray, tol_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh with the part's dent pressed in: triangles near it split (midpoints put back on
+    the design surface) until their edges follow the dent's curvature within ``tol_mm``, then
+    the vertices there moved onto the dented surface."""
+    dent = part.dent
+    # the dent's largest curvature is depth / sigma^2 (at its bottom)
+    edge = max(np.sqrt(8.0 * tol_mm * dent.sigma_mm**2 / dent.depth_mm), 1e-3)
+    reach = dent.REACH * dent.sigma_mm
+    for _ in range(40):
+        tri = V[F]
+        lengths = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2)
+        close = (np.linalg.norm(tri - dent.centre, axis=2) < reach + lengths.max(1, keepdims=True)).any(1)
+        split = close & (lengths.max(1) > edge)
+        if not split.any():
+            break
+        S = F[split]
+        pairs = np.sort(np.stack([S[:, [0, 1]], S[:, [1, 2]], S[:, [2, 0]]], 1).reshape(-1, 2), axis=1)
+        uniq, inv = np.unique(pairs, axis=0, return_inverse=True)
+        X = part.to_unit(0.5 * (V[uniq[:, 0]] + V[uniq[:, 1]]))
+        X /= part.gauge(X)[:, None]
+        mid = len(V) + inv.reshape(-1, 3)
+        V = np.vstack([V, part.c + X @ part.Minv.T])
+        a, b, c = S[:, 0], S[:, 1], S[:, 2]
+        ab, bc, ca = mid[:, 0], mid[:, 1], mid[:, 2]
+        F = np.vstack([F[~split], np.stack([a, ab, ca], 1), np.stack([ab, b, bc], 1),
+                       np.stack([ca, bc, c], 1), np.stack([ab, bc, ca], 1)])
+    near = dent.near(V)
+    g = part.design_gradient(V[near])
+    inward = -g / np.linalg.norm(g, axis=1, keepdims=True)
+    V = V.copy()
+    V[near] += part.dent_step(V[near], inward)[:, None] * inward
     return V, F
 
 

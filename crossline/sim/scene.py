@@ -547,6 +547,36 @@ def _gauge_root(X0: np.ndarray, D: np.ndarray, s_max: np.ndarray) -> tuple[np.nd
     return out, missed
 
 
+@dataclass(frozen=True)
+class Dent:
+    """A local defect pressed into a surface: the surface moves inward along its normal by
+    ``depth_mm * exp(-|p - centre|^2 / (2 sigma_mm^2))`` (``centre`` on the undented surface,
+    parent frame, mm). Beyond ``REACH`` sigmas the surface is left exactly as designed."""
+
+    centre: np.ndarray
+    depth_mm: float
+    sigma_mm: float
+
+    REACH = 5.0
+
+    def transformed(self, T: np.ndarray) -> Dent:
+        """The same dent in another frame."""
+        return Dent(T[:3, :3] @ self.centre + T[:3, 3], self.depth_mm, self.sigma_mm)
+
+    def near(self, P: np.ndarray) -> np.ndarray:
+        """Points (N, 3) where the dent moves the surface."""
+        return norm3(P - self.centre) < self.REACH * self.sigma_mm
+
+    def depth(self, P: np.ndarray) -> np.ndarray:
+        """Inward displacement (mm) at points (N, 3)."""
+        r = P - self.centre
+        return self.depth_mm * np.exp(-rowdot(r, r) / (2.0 * self.sigma_mm**2))
+
+    def gradient(self, P: np.ndarray) -> np.ndarray:
+        """Gradient (N, 3) of :meth:`depth`."""
+        return -(P - self.centre) * (self.depth(P) / self.sigma_mm**2)[:, None]
+
+
 @dataclass
 class FreeformPart(Primitive):
     """A convex freeform: ``||X||_4 <= 1, X_z >= 0`` with ``X = M (p - c)``.
@@ -557,12 +587,19 @@ class FreeformPart(Primitive):
     ``N(X) = (X^4 + Y^4 + Z^4)^(1/4)``: rays meet it by Newton's method on ``N - 1``, which
     converges monotonically from outside (convexity) to machine precision. Its bottom
     (X_z = 0) rests on the table (face 1, hidden).
+
+    With a :class:`Dent`, the surface is the zero set of ``F(p) = s(p) + dent.depth(p)``, where
+    ``s = (N - 1) / |grad_p N|`` is the design surface's signed distance to first order (its
+    error at 0.1 mm from the surface is ~0.1 mm^2 / radius of curvature, below 1 um here):
+    hits, normals, sections and the inside test near the dent follow F by Newton's method from
+    the design surface's (a few iterations, to 1e-12 mm).
     """
 
     c: np.ndarray
     M: np.ndarray
     albedo_value: float = 0.75
     name: str = "part"
+    dent: Dent | None = None
 
     def __post_init__(self):
         self.Minv = np.linalg.inv(self.M)
@@ -570,7 +607,32 @@ class FreeformPart(Primitive):
     def transformed(self, T):
         """The same part in another frame."""
         R, t = T[:3, :3], T[:3, 3]
-        return FreeformPart(R @ self.c + t, self.M @ R.T, self.albedo_value, self.name)
+        dent = None if self.dent is None else self.dent.transformed(T)
+        return FreeformPart(R @ self.c + t, self.M @ R.T, self.albedo_value, self.name, dent)
+
+    def design_gradient(self, P):
+        """grad_p N (N, 3) of the design surface's gauge at points."""
+        X = self.to_unit(P)
+        return mat3(X**3 / np.maximum(self.gauge(X), 1e-300)[:, None] ** 3, self.M)
+
+    def dent_function(self, P):
+        """F(p): positive outside the dented surface, zero on it, in mm near the surface."""
+        X = self.to_unit(P)
+        g = mat3(X**3 / np.maximum(self.gauge(X), 1e-300)[:, None] ** 3, self.M)
+        return (self.gauge(X) - 1.0) / norm3(g) + self.dent.depth(P)
+
+    def dent_step(self, P, D, iterations: int = 12):
+        """Steps s (N,) with F(P + s D) = 0 near the design-surface points P, by Newton's method."""
+        s = np.zeros(len(P))
+        for _ in range(iterations):
+            Q = P + s[:, None] * D
+            g = self.design_gradient(Q)
+            dF = rowdot(g / norm3(g)[:, None] + self.dent.gradient(Q), D)
+            step = -self.dent_function(Q) / np.where(np.abs(dF) > 1e-12, dF, 1e-12)
+            s += step
+            if np.abs(step).max(initial=0.0) < 1e-12:
+                break
+        return s
 
     @staticmethod
     def gauge(X):
@@ -584,6 +646,22 @@ class FreeformPart(Primitive):
 
     def intersect(self, o, d, tmin):
         """First hit t and face (0 surface, 1 bottom) of rays o + t d."""
+        t, face = self._intersect_design(o, d, tmin)
+        if self.dent is None:
+            return t, face
+        hit = np.flatnonzero(np.isfinite(t) & (face == 0))
+        if hit.size:
+            oh = o[hit] if o.ndim == 2 else np.broadcast_to(o, (hit.size, 3))
+            P = oh + t[hit, None] * d[hit]
+            near = self.dent.near(P)
+            if near.any():
+                k = hit[near]
+                # the dent only removes material: the ray meets it beyond the design hit
+                t[k] += self.dent_step(P[near], d[k])
+        return t, face
+
+    def _intersect_design(self, o, d, tmin):
+        """First hit t and face of rays o + t d with the undented design surface."""
         n = len(d)
         oX = self.to_unit(o) if o.ndim == 2 else np.broadcast_to(self.to_unit(o[None])[0], (n, 3))
         dX = mat3(d, self.M.T)
@@ -643,6 +721,11 @@ class FreeformPart(Primitive):
         """Outward unit normals."""
         X = self.to_unit(P)
         g = mat3(X**3, self.M)
+        if self.dent is not None:
+            near = (face == 0) & self.dent.near(P)
+            if near.any():
+                gn = self.design_gradient(P[near])
+                g[near] = gn / norm3(gn)[:, None] + self.dent.gradient(P[near])
         g = np.where((face == 1)[:, None], -self.M[2], g)  # bottom: gradient of -X_z
         return g / norm3(g)[:, None]
 
@@ -651,10 +734,16 @@ class FreeformPart(Primitive):
         """Points in the closed solid (tol in mm, roughly)."""
         X = self.to_unit(P)
         tn = 1.5 * tol * np.linalg.norm(self.M, 2)
-        return (self.gauge(X) <= 1.0 + tn) & (X[:, 2] >= -tn)
+        out = (self.gauge(X) <= 1.0 + tn) & (X[:, 2] >= -tn)
+        if self.dent is not None:
+            near = out & self.dent.near(P)
+            if near.any():
+                out[near] = self.dent_function(P[near]) <= 1.5 * tol
+        return out
 
     def sections(self, n, d):
         """The closed curve where the plane meets the surface, cut at the table."""
+        n_unit = n / np.linalg.norm(n)
         m = self.Minv.T @ n
         h = n @ self.c + d
         mn = np.linalg.norm(m)
@@ -678,7 +767,16 @@ class FreeformPart(Primitive):
             X = Xs + (rho0 - s_)[:, None] * dirs
             P = self.c + mat3(X, self.Minv.T)
             g = mat3(X**3, self.M)
-            return P, g / norm3(g)[:, None], X[:, 2] >= 0
+            N = g / norm3(g)[:, None]
+            if self.dent is not None:
+                near = self.dent.near(P)
+                if near.any():
+                    # the dented curve: from the design curve inward, within the plane
+                    u = N[near] - np.outer(N[near] @ n_unit, n_unit)
+                    u /= norm3(u)[:, None]
+                    P[near] -= self.dent_step(P[near], -u)[:, None] * u
+                    N[near] = self.normal(P[near], np.zeros(int(near.sum()), np.int8))
+            return P, N, X[:, 2] >= 0
 
         return [Curve(self.pid, fn, 0.0, 2 * np.pi, True)]
 

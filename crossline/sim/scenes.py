@@ -16,7 +16,7 @@ import numpy as np
 
 from crossline.geometry import rotvec_to_matrix
 from crossline.sim.presets import BoardSpec, RigPreset, ScanSpec
-from crossline.sim.scene import Box, Cylinder, FreeformPart, HalfSpace, Scene, Sphere
+from crossline.sim.scene import Box, Cylinder, Dent, FreeformPart, HalfSpace, Scene, Sphere
 from crossline.sim.texture import board_texture
 
 __all__ = ["board_box", "board_scene_free", "board_scene_table", "scan_scene"]
@@ -112,6 +112,16 @@ def scan_scene(preset: RigPreset, spec: ScanSpec) -> tuple[Scene, dict, np.ndarr
                             "semi_axes": [a, b, cz], "lean": p.get("lean", 0.0),
                             "centre_base": part.c.tolist(), "M": part.M.tolist(),
                             "surface": "||M (p - centre)||_4 = 1 with (M (p - centre))_z >= 0"}}
+        if part.dent is not None:
+            T = nominal_frame(preset, spec)
+            at = part.dent.centre
+            truth["dent"] = {
+                "profile": "inward along the design normal by depth * exp(-r^2 / (2 sigma^2)), "
+                           "r the distance to the centre",
+                "depth_mm": part.dent.depth_mm, "sigma_mm": part.dent.sigma_mm,
+                "centre_base": at.tolist(),
+                "centre_nominal": (T[:3, :3].T @ (at - T[:3, 3])).tolist(),
+            }
         aim = part.c + part.Minv @ np.array([0.0, 0.0, 0.75])
     else:
         raise ValueError(f"unknown artefact {spec.artefact!r}")
@@ -136,4 +146,12 @@ def freeform_part(preset: RigPreset, spec: ScanSpec) -> FreeformPart:
     S = np.array([[1.0, 0.0, -p.get("lean", 0.0)], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
     M = np.diag([1 / a, 1 / b, 1 / c]) @ S @ R.T
     centre = np.array([p["centre"][0], p["centre"][1], preset.table_z_mm])
-    return FreeformPart(centre, M, p["albedo"], "part")
+    dent = None
+    if p.get("dent"):
+        # params "dent": depth_mm, sigma_mm and "at", the plan position (x, y) on the unit
+        # superellipsoid; the dent's centre is the surface point above it
+        dx, dy = p["dent"]["at"]
+        X = np.array([dx, dy, (1.0 - dx**4 - dy**4) ** 0.25])
+        dent = Dent(centre + np.linalg.solve(M, X), float(p["dent"]["depth_mm"]),
+                    float(p["dent"]["sigma_mm"]))
+    return FreeformPart(centre, M, p["albedo"], "part", dent)
