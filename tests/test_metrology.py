@@ -265,6 +265,9 @@ def test_sphere_noisy_statistics():
     # 95 % of a normal distribution within ±1.96 sigma: D95 range = 3.92 sigma
     assert f["form_error_d95_mm"] == pytest.approx(3.92 * sigma, rel=0.05)
     assert f["form_error_mm"] > f["form_error_d95_mm"]
+    # VDI/VDE 2634-2 discards at most 0.3 %: 99.7 % within ±2.97 sigma, a range of 5.94 sigma
+    assert f["form_error_vdi_mm"] == pytest.approx(5.94 * sigma, rel=0.06)
+    assert f["form_error_d95_mm"] < f["form_error_vdi_mm"] < f["form_error_mm"]
     ab = mt.compare_lasers("sphere", pts, lab, sphere=s).figures()
     assert abs(ab["A_minus_B"]["diameter_mm"]) < 0.002
 

@@ -162,6 +162,10 @@ def test_summary_rows_are_the_measured_figures(report_data):
     stat = m["provenance"]["metrology"]["sphere_form_statistic"]
     assert rows["sphere_form_error_mm", "ball"]["value"] == ball[FORM_KEYS[stat]]
     assert rows["sphere_form_error_d95_mm", "ball"]["value"] == ball["form_error_d95_mm"]
+    assert rows["sphere_form_error_vdi_mm", "ball"]["value"] == ball["form_error_vdi_mm"]
+    assert ball["form_error_d95_mm"] <= ball["form_error_vdi_mm"] <= ball["form_error_mm"]
+    plate = m["scans"]["plate"]["measurement"]
+    assert rows["plane_flatness_mm", "plate"]["value"] == plate["flatness_mm"] >= plate["flatness_95_mm"]
     for r in m["summary"]:
         if r["tolerance"] is not None:
             v = abs(r["value"]) if r["abs"] else r["value"]

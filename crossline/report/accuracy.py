@@ -66,7 +66,7 @@ DEFAULT_METROLOGY: dict[str, Any] = {
     "segment_band_mm": 0.2,  # gauge: half-width of the layer of points that counts as a face
     "sphere_ransac_mm": 0.2,  # sphere: RANSAC inlier band around the nominal sphere
     "sphere_trim_sigma": 5.0,  # sphere: inliers re-selected at this many robust sigmas
-    "sphere_form_statistic": "all",  # which form error is checked: all | d95 | p95
+    "sphere_form_statistic": "all",  # which form error is checked: all | vdi | d95 | p95
     # gauge heights referenced to the plate in the same frame ("frame", cancels the arm's pose
     # error of each frame) or to the plate plane of the whole scan ("plane", the paper's)
     "gauge_reference": "frame",
@@ -81,7 +81,8 @@ DEFAULT_METROLOGY: dict[str, Any] = {
     "uncertainty_draws": 200,
 }
 
-FORM_KEYS = {"all": "form_error_mm", "d95": "form_error_d95_mm", "p95": "form_error_p95_mm"}
+FORM_KEYS = {"all": "form_error_mm", "vdi": "form_error_vdi_mm", "d95": "form_error_d95_mm",
+             "p95": "form_error_p95_mm"}
 
 
 # ----------------------------------------------------------------------------- config
@@ -330,7 +331,8 @@ def _check(
 # (sphere_form_error_mm: the configured form statistic's)
 ROW_FIGURES = {"gauge_mean_error_mm": "mean_mm", "plane_within_share": "share_within_band",
                "plane_flatness_95_mm": "flatness_95_mm", "sphere_size_error_mm": "diameter_mm",
-               "sphere_form_error_d95_mm": "form_error_d95_mm"}
+               "sphere_form_error_d95_mm": "form_error_d95_mm",
+               "sphere_form_error_vdi_mm": "form_error_vdi_mm", "plane_flatness_mm": "flatness_mm"}
 
 
 def _with_uncertainty(row: dict, unc: dict | None, form_key: str) -> None:
@@ -1107,16 +1109,23 @@ def build_report(
             _check(rows, "plane_within_share", f"plane: share within ±{tol['plane_band_mm']:g} mm",
                    name, m.get("share_within_band"), "%", tol["plane_within_share"],
                    comparison=">=", note=err)
+            _check(rows, "plane_flatness_mm", "plane: flatness F (all points)", name,
+                   m.get("flatness_mm"), "mm", None, note=err)
             _check(rows, "plane_flatness_95_mm", "plane: flatness (2.5–97.5 %)", name,
                    m.get("flatness_95_mm"), "mm", None, note=err)
         elif sd.artefact == "sphere":
             _check(rows, "sphere_size_error_mm", "sphere: size error (PSize)", name,
                    m.get("size_error_mm"), "mm", tol["sphere_size_error_mm"], use_abs=True,
                    note=err)
-            label = {"all": "all points", "d95": "D95 %", "p95": "2.5–97.5 %"}[
-                met["sphere_form_statistic"]]
+            label = {"all": "all points, ISO 10360-8", "vdi": "VDI/VDE 2634-2, ≤ 0.3 % discarded",
+                     "d95": "D95 %", "p95": "2.5–97.5 %"}[met["sphere_form_statistic"]]
             _check(rows, "sphere_form_error_mm", f"sphere: form error (PForm, {label})", name,
                    m.get(form_key), "mm", tol["sphere_form_error_mm"], note=err)
+            if met["sphere_form_statistic"] != "vdi":
+                # both standards' readings: the acceptance test names which one it applies
+                _check(rows, "sphere_form_error_vdi_mm",
+                       "sphere: form error, VDI/VDE 2634-2 (≤ 0.3 % discarded)", name,
+                       m.get(FORM_KEYS["vdi"]), "mm", None, note=err)
             if met["sphere_form_statistic"] != "d95":
                 _check(rows, "sphere_form_error_d95_mm",
                        "sphere: form error, D95 % (ISO 10360-13)", name,

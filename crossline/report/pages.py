@@ -1241,6 +1241,7 @@ UNCERTAINTY_FIGURES = {"mean_mm": "gauge height (mean)", "flatness_mm": "flatnes
                        "flatness_95_mm": "flatness (2.5–97.5 %)", "rms_mm": "RMS to the plane",
                        "share_within_band": "share within the band", "diameter_mm": "diameter",
                        "form_error_mm": "form error (all)", "form_error_d95_mm": "form error (D95)",
+                       "form_error_vdi_mm": "form error (VDI/VDE 2634-2, 0.3 % discarded)",
                        "form_error_p95_mm": "form error (2.5–97.5 %)"}
 BUDGET = {"camera": "camera", "laser_planes": "planes", "handeye": "hand-eye",
           "repeatability": "frames"}

@@ -289,11 +289,12 @@ def sphere_figures(s: Any) -> Figures:
         r = (np.linalg.norm(p - x[:3], axis=1) - x[3])[keep]
         ww = wi[keep]
         # the report's D95: the 95 % of the points closest to the sphere; p95: 2.5-97.5 %
-        a95 = _weighted_percentiles(np.abs(r), ww, (95.0,))[0]
-        r95 = r[np.abs(r) <= a95]
+        a95, a997 = _weighted_percentiles(np.abs(r), ww, (95.0, 99.7))
+        r95, r997 = r[np.abs(r) <= a95], r[np.abs(r) <= a997]
         lo, hi = _weighted_percentiles(r, ww, (2.5, 97.5))
         return {"diameter_mm": float(2 * x[3]), "form_error_mm": float(r.max() - r.min()),
                 "form_error_d95_mm": float(r95.max() - r95.min()),
+                "form_error_vdi_mm": float(r997.max() - r997.min()),
                 "form_error_p95_mm": float(hi - lo)}
 
     return figures
