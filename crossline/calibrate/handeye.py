@@ -904,13 +904,19 @@ def run_calibrate_handeye(
     if len(use) < 3:
         lines = "\n".join(f"  - {s['image']}: {s['reason']}" for s in skipped)
         raise CalibrationError(
-            f"hand-eye calibration needs at least 3 views with the board found, got {len(use)} of "
-            f"{len(names)}:\n{lines}"
+            f"capture {cap.root}: calibration/handeye: hand-eye calibration needs at least 3 views "
+            f"with the board found, got {len(use)} of {len(names)}" + (f":\n{lines}" if lines else "")
         )
-    he = solve_handeye(
-        camera, board, np.array([dets[k].points for k in use]), cap.handeye_T_base_tool[use],
-        [names[k] for k in use], mismatch_k=mismatch_k,
-    )
+    try:
+        he = solve_handeye(
+            camera, board, np.array([dets[k].points for k in use]), cap.handeye_T_base_tool[use],
+            [names[k] for k in use], mismatch_k=mismatch_k,
+        )
+    except CalibrationError as exc:
+        # what the solver finds wrong is in the arm poses (degenerate motion) or in how they
+        # match the views (rotation angles): the file that holds them is named
+        raise CalibrationError(f"capture {cap.root}: calibration/handeye/poses.csv (the arm poses of "
+                               f"{len(use)} views with the board found): {exc}") from None
     he.extra["skipped_views"] = skipped
     he.save(out)
     sel, pairs = he.extra["selection"], he.extra["pairs"]
