@@ -60,6 +60,9 @@ log = logging.getLogger(__name__)
 MIN_CENTRES = 20  # fewer stripe centres on the board than this: no stripe
 PAD_PX = 3  # how far the grey-centre window reaches beyond the run above threshold
 MIN_POSES = 2  # usable poses per laser: one pose's stripe is a line, two span the plane
+# the plane's inlier scatter, in pixels at the points' depth, beyond which its centres are
+# not the stripe's (good stripes scatter by a tenth of a pixel or so)
+MAX_PLANE_RMS_PX = 3.0
 NOISE_K = 8.0  # the stripe stands this many noise sigmas above the laser-minus-board difference
 STRIPE_OPEN_FRACTION = 0.012  # laser always on: the opening that removes the stripe, x sensor size
 
@@ -345,6 +348,7 @@ def stripe_points(
     thr = max(threshold * peak, floor * 0.5)
     axis = _stripe_axis(dm, thr, lambda uv: clearance_px(uv) > 0)
     albedo = None
+    detect = None
     if normalise_albedo:
         other = light if board.circles == "light" else ~light  # the class the plate is not
         found = albedo_gain(diff_f, a * board_image.astype(np.float32) + b, plate, other, area,
@@ -354,8 +358,19 @@ def stripe_points(
             # the stripe everywhere at its level on the plate: the same threshold holds
             diff = np.clip(np.round(diff_f * gain * scale), 0, 65535).astype(np.uint16)
             dm = np.where(area, diff, 0)
+            # runs are found only near pixels where the raw difference stands NOISE_K sigmas
+            # above its noise: the gain lifts the dark class's noise with its stripe (and a
+            # JPEG's ringing beside it), and those runs crowd the stripe's own (flagged close
+            # or merged) though none of them is light; the stripe's own run keeps its extent
+            # at the threshold (the mask grown by a pixel)
+            strong = (diff_f > floor / scale).astype(np.uint8)
+            strong = cv2.dilate(strong, np.ones((3, 3), np.uint8))
+            detect = np.where(strong.astype(bool), dm, 0).astype(np.uint16)
     img = dm if axis == "column" else np.ascontiguousarray(dm.T)
-    c = grey_centre(img, min_width=2.0, max_width=80.0, pad=PAD_PX, level=thr, data_max=65535.0)
+    if detect is not None and axis != "column":
+        detect = np.ascontiguousarray(detect.T)
+    c = grey_centre(img, min_width=2.0, max_width=80.0, pad=PAD_PX, level=thr, data_max=65535.0,
+                    detect=detect)
     ok = (c["flags"] & ~np.uint8(4)) == 0  # saturation of the difference is harmless
     col, v, width = c["u"][ok], c["v"][ok], c["width"][ok]
     n_centres = int(ok.sum())
@@ -690,11 +705,26 @@ def run_calibrate_lasers(
             failures.append(f"  laser {laser}: {len(mine)} usable pose{'s' * (len(mine) != 1)} of "
                             f"{n_views}, at least {MIN_POSES} needed\n" + "\n".join(used + why))
             continue
-        pts = np.concatenate([s.points for _, s in mine])
-        pose_of = np.concatenate([np.full(len(s.points), i) for i, (_, s) in enumerate(mine)])
-        other = np.concatenate([s.on_other for _, s in mine])
-        noise = 2 * pose_of + other  # pose x albedo class: the groups that share a noise level
-        nrm, d, inl = robust_plane(pts, trim=trim, groups=pose_of, noise_groups=noise)
+        while True:
+            pts = np.concatenate([s.points for _, s in mine])
+            pose_of = np.concatenate([np.full(len(s.points), i) for i, (_, s) in enumerate(mine)])
+            other = np.concatenate([s.on_other for _, s in mine])
+            noise = 2 * pose_of + other  # pose x albedo class: groups that share a noise level
+            nrm, d, inl = robust_plane(pts, trim=trim, groups=pose_of, noise_groups=noise)
+            # a pose whose kept centres scatter by pixels about the others' plane found
+            # something else than the stripe: skipped with its reason, while enough remain
+            px = np.abs(plane_distance(pts, nrm, d)) * camera.fx / np.abs(pts[:, 2])
+            rms = [float(np.sqrt(np.mean(px[(pose_of == i) & inl] ** 2)))
+                   if np.any((pose_of == i) & inl) else 0.0 for i in range(len(mine))]
+            worst = int(np.argmax(rms))
+            if rms[worst] <= MAX_PLANE_RMS_PX or len(mine) <= MIN_POSES:
+                break
+            v, _ = mine.pop(worst)
+            skipped.append({"pose": v.pose, "laser_image": str(v.laser_image.relative_to(cap.root)),
+                            "reason": f"its stripe centres lie {rms[worst]:.1f} px RMS off the plane "
+                                      f"of the other poses (at most {MAX_PLANE_RMS_PX:g} px): not all "
+                                      "the stripe's (a heavily compressed image, glints?)"})
+            log.warning("laser %s: pose %s skipped: %s", laser, v.pose, skipped[-1]["reason"])
         k = 0
         poses = []
         for v, s in mine:
@@ -716,6 +746,18 @@ def run_calibrate_lasers(
             })
             k += m
         r = plane_distance(pts[inl], nrm, d)
+        # the scatter about the plane in pixels at the points' depth: a centre is good to a
+        # fraction of a pixel, so pixels of scatter mean centres that are not the stripe's
+        rms_px = float(np.sqrt(np.mean((r * camera.fx / np.abs(pts[inl, 2])) ** 2)))
+        if rms_px > MAX_PLANE_RMS_PX:
+            per_pose = ", ".join(f"{q['pose']} {q['rms_mm']:.3f} mm" for q in poses
+                                 if q["rms_mm"] is not None)
+            failures.append(
+                f"  laser {laser}: its stripe points lie {float(np.sqrt(np.mean(r**2))):.3f} mm RMS "
+                f"off their plane, {rms_px:.1f} px at their depth (at most {MAX_PLANE_RMS_PX:g} px): "
+                f"the centres are not all the stripe's (a heavily compressed image, glints?); "
+                f"RMS per pose: {per_pose}")
+            continue
         sigma = group_sigma(plane_distance(pts, nrm, d), noise, inl)
         cov = plane_covariance(pts[inl], nrm, d, weights=1.0 / sigma[inl] ** 2,
                                clusters=pose_of[inl])
@@ -727,6 +769,7 @@ def run_calibrate_lasers(
                                 nrm, d, steps)
         planes[laser] = LaserPlane(nrm, d, {
             "rms_mm": float(np.sqrt(np.mean(r**2))),
+            "rms_px": rms_px,
             "covariance": {
                 "parameters": ["tilt_e1_rad", "tilt_e2_rad", "d_mm"],
                 "tilt_basis": plane_tilt_basis(nrm).tolist(),
