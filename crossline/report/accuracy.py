@@ -1117,14 +1117,14 @@ def build_report(
             _check(rows, "sphere_size_error_mm", "sphere: size error (PSize)", name,
                    m.get("size_error_mm"), "mm", tol["sphere_size_error_mm"], use_abs=True,
                    note=err)
-            label = {"all": "all points, ISO 10360-8", "vdi": "VDI/VDE 2634-2, ≤ 0.3 % discarded",
+            label = {"all": "all points, ISO 10360-8", "vdi": "VDI/VDE 2634-2",
                      "d95": "D95 %", "p95": "2.5–97.5 %"}[met["sphere_form_statistic"]]
             _check(rows, "sphere_form_error_mm", f"sphere: form error (PForm, {label})", name,
                    m.get(form_key), "mm", tol["sphere_form_error_mm"], note=err)
             if met["sphere_form_statistic"] != "vdi":
                 # both standards' readings: the acceptance test names which one it applies
                 _check(rows, "sphere_form_error_vdi_mm",
-                       "sphere: form error, VDI/VDE 2634-2 (≤ 0.3 % discarded)", name,
+                       "sphere: form error (VDI/VDE 2634-2)", name,
                        m.get(FORM_KEYS["vdi"]), "mm", None, note=err)
             if met["sphere_form_statistic"] != "d95":
                 _check(rows, "sphere_form_error_d95_mm",

@@ -360,8 +360,9 @@ def page_summary(m: dict[str, Any]) -> Figure:
         "|x| means the absolute value is compared. INFO rows have no tolerance; N/A: not measured.",
         "Gauge height: the distance of every top-face point to the plane fitted to the plate",
         "around the block (the paper's Fig. 10), away from the block's edges.",
-        "Plane: distances to the least-squares plane (the paper's Fig. 16). Sphere: least-squares",
-        "sphere (ISO 10360-8 PSize; PForm as the range of radial residuals, see the scan page).",
+        "Plane: distances to the least-squares plane (the paper's Fig. 16), flatness F their range.",
+        "Sphere: least-squares sphere (ISO 10360-8 PSize; PForm the range of radial residuals;",
+        "VDI/VDE 2634-2 may discard up to 0.3 % of the points, the largest residuals).",
         "Laser A − laser B: the same artefact measured from each laser's points alone"
         + (" (a one-line rig: omitted)." if m["capture"].get("lasers") == ["A"] else "."),
         "Histograms span 0.1–99.9 % of the values (at most ±8 robust sigmas); the rest are",
