@@ -276,6 +276,16 @@ def main(argv: list[str] | None = None) -> int:
         lines.append(f"{name:<16} " + "  ".join(
             f"{k} {lab.get('wrong', '-')}/{lab.get('checked', '-')}" for k, lab in sorted(labels.items()))
             + f"  (states {pattern})")
+    lines.append("stripe centres against the speckle limit of each rig's optics (the report's validation, "
+                 "crossline.report.speckle), every scan and laser: achieved robust sigma / bound on one "
+                 "profile = ratio, and the ratio to the bound after the centre lines' smoothing")
+    for name in caps:
+        parts = []
+        for scan, lab in sorted((rows[name].get("labels") or {}).items()):
+            for laser, sl in sorted((lab.get("speckle_limit") or {}).items()):
+                parts.append(f"{scan}/{laser} {sl['achieved_sigma_px']:.3f}/{sl['bound_px']:.3f} px = "
+                             f"{sl['ratio']:.2f}x ({sl['ratio_smoothed']:.2f}x)")
+        lines.append(f"{name:<16} " + ("  ".join(parts) if parts else "no speckle figures"))
     lines.append("stripe centres against the true centre lines (truth/*_centrelines.parquet: lit, seen, "
                  "not occluded), every scan: found = within 5 px of an unflagged centre; rms: row error "
                  "of the column-profiled ones within 2 px")

@@ -12,6 +12,7 @@ import pytest
 from crossline.cli import main
 from crossline.report.accuracy import build_report
 from crossline.report.pages import build_pages, fmt, fmt_row_value, page_texts
+from crossline.report.speckle import centre_bound_px
 from crossline.scan.centreline import half_amplitude_columns
 
 pytestmark = pytest.mark.slow
@@ -70,6 +71,16 @@ def test_quick_report_every_section_and_same_bytes(quick_pipeline):
         # every AB-frame point checked against the true centre lines, none with the wrong laser
         lt = s["truth_labels"]
         assert lt["checked"] >= 0.9 * lt["points"] > 0 and lt["wrong"] == 0, (name, lt)
+        # the centres against the speckle limit of the rig's optics (0.15 contrast, 405 nm,
+        # f/8, 2.4 um pixels): smoothed centres can beat one profile's bound but not the
+        # smoothed bound of independent columns; and they are not far from it
+        for laser, sl in lt["speckle_limit"].items():
+            assert sl["bound_px"] == pytest.approx(
+                centre_bound_px(0.15, 405.0, 8.0, 2.4, sl["magnification"]))
+            assert 0.05 < sl["magnification"] < 0.12
+            assert sl["bound_smoothed_px"] < sl["achieved_sigma_px"] < 3 * sl["bound_px"], (name, laser, sl)
+            ce = lt["centre_error"][laser]
+            assert abs(ce["mean_px"]) < 0.02 and ce["n"] > 100, (name, laser, ce)
     # the freeform against its drawing (part.stl): the quick scan sees a patch of the part's
     # flat, nearly symmetric top, which fits its drawing in more than one place. The report
     # says so (the row N/A) rather than compare with a drawing placed by chance; that the

@@ -625,6 +625,12 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
     if tscan and tscan.get("centrelines") and sd.points_path is not None:
         out["truth_labels"] = _label_truth(sd.points_path, truth_file(root, sd.name, tscan, "centrelines"),
                                            files)
+        if out["truth_labels"] and truth:
+            smooth = ((sd.points_info or {}).get("params") or {}).get("smooth_px")
+            bound = _speckle_limit(out["truth_labels"].get("centre_error") or {}, truth,
+                                   sd.points_path, smooth)
+            if bound:
+                out["truth_labels"]["speckle_limit"] = bound
 
     # top view, coloured by height (above the artefact's reference plane, else along `up`)
     if height_ref is not None:
@@ -660,6 +666,46 @@ def _label_truth(points: Path, centrelines: Path, files: list) -> dict[str, Any]
     return mt.label_errors(p["frame"].to_numpy(), p["laser"].to_numpy(), p["u"].to_numpy(),
                            p["v"].to_numpy(), t["frame"].to_numpy(), t["laser"].to_numpy(),
                            t["u"].to_numpy(), t["v"].to_numpy())
+
+
+def _speckle_limit(centre: dict, truth: dict, points: Path,
+                   smooth_px: int | None = None) -> dict[str, Any] | None:
+    """Per laser: the speckle bound on one profile's centre (px, :mod:`crossline.report.speckle`,
+    from the rig's optics in truth.json), the same after the centre lines' smoothing
+    (``smooth_px`` columns, as if the columns' speckle were independent: the lower end), the
+    centres' achieved robust sigma against the true lines, and its ratio to each."""
+    import pandas as pd
+
+    from crossline.report.speckle import centre_bound_px, smoothing_gain
+
+    sensor, cam = truth.get("sensor") or {}, truth.get("camera") or {}
+    pitch, fno = sensor.get("pixel_pitch_um"), sensor.get("f_number")
+    if not (pitch and fno and cam.get("K") and centre):
+        return None
+    try:
+        z = pd.read_parquet(points, columns=["laser", "z_cam"])
+    except Exception:  # an older points file without camera coordinates
+        return None
+    fx = float(cam["K"][0][0])
+    out: dict[str, Any] = {}
+    for name, ce in centre.items():
+        las = (truth.get("lasers") or {}).get(name) or {}
+        zl = z["z_cam"][z["laser"] == name].to_numpy(np.float64)
+        if not (las.get("speckle_contrast") is not None and las.get("wavelength_nm") and zl.size):
+            continue
+        # magnification at the points' median depth: f / z, f = fx * pitch
+        m = fx * float(pitch) * 1e-3 / float(np.median(zl))
+        b = centre_bound_px(float(las["speckle_contrast"]), float(las["wavelength_nm"]),
+                            float(fno), float(pitch), m)
+        gain = smoothing_gain(int(smooth_px)) if smooth_px else 1.0
+        out[name] = {"bound_px": b, "achieved_sigma_px": ce["sigma_px"],
+                     "ratio": ce["sigma_px"] / b if b > 0 else None,
+                     "smooth_px": smooth_px, "bound_smoothed_px": b * gain,
+                     "ratio_smoothed": ce["sigma_px"] / (b * gain) if b > 0 else None,
+                     "contrast": float(las["speckle_contrast"]),
+                     "wavelength_nm": float(las["wavelength_nm"]), "f_number": float(fno),
+                     "pixel_um": float(pitch), "magnification": m}
+    return out or None
 
 
 def _viewpoints(sd: ScanData) -> np.ndarray | None:

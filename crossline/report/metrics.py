@@ -895,7 +895,8 @@ def label_errors(
     column (``round(u)``) and the other does not; its true laser is that line's (a line that
     crosses the column more than once counts with its row nearest the point). Points where
     the two true lines are within ``crossing_px`` of each other are the crossing band, counted
-    apart.
+    apart. ``centre_error``: per laser, the right-labelled centres' offset from their true
+    line along the column (px; n, mean, RMS and robust sigma), away from the crossing band.
     """
     frame = np.asarray(frame, dtype=np.int64)
     col = np.rint(np.asarray(u, dtype=np.float64)).astype(np.int64)
@@ -927,11 +928,22 @@ def label_errors(
         crossing = np.abs(true_row["A"] - true_row["B"]) < crossing_px
     wrong = checked & (laser != truth)
     n_checked = int(checked.sum())
+    # how far the right-labelled centres lie from their true line, along the column, away
+    # from the crossing (where the two stripes' light overlaps)
+    centre = {}
+    for name in ("A", "B"):
+        m = checked & ~crossing & (laser == truth) & (truth == name)
+        r = (v - true_row[name])[m]
+        if r.size >= 10:
+            med = float(np.median(r))
+            centre[name] = {"n": int(r.size), "mean_px": float(r.mean()),
+                            "rms_px": float(np.sqrt(np.mean(r**2))),
+                            "sigma_px": 1.4826 * float(np.median(np.abs(r - med)))}
     return {"points": int(frame.size), "checked": n_checked, "wrong": int(wrong.sum()),
             "wrong_away_from_crossing": int((wrong & ~crossing).sum()),
             "wrong_in_crossing_band": int((wrong & crossing).sum()),
             "wrong_rate": float(wrong.sum() / n_checked) if n_checked else None,
-            "near_px": near_px, "crossing_px": crossing_px}
+            "near_px": near_px, "crossing_px": crossing_px, "centre_error": centre}
 
 
 def volume_points(

@@ -703,6 +703,7 @@ def _truth_json(rig: RigPreset, seed: int, quick: bool, bits: int, pattern: list
         "shot_noise": "Poisson below 30 e-, Gaussian sqrt(e) above",
         "vignetting": "cos^4 of the field angle",
         "scan_window": list(s.scan_window), "frame_rate": s.frame_rate,
+        "pixel_pitch_um": s.pixel_pitch_um, "f_number": s.f_number,
     }
     if output.data_bits is not None:
         sensor["data_bits"] = dbits
