@@ -36,6 +36,20 @@ def test_e57_round_trip_is_exact_and_in_metres(tmp_path):
     assert np.allclose(raw["cartesianZ"], P[:, 2] / 1000.0, rtol=0, atol=1e-15)
 
 
+def test_e57_without_normals_reads(tmp_path):
+    """Clouds from other programs (here pye57's writer) and ours without normals: points only."""
+    P, _ = _cloud(800, seed=3)
+    e57 = pye57.E57(str(tmp_path / "other.e57"), mode="w")
+    e57.write_scan_raw({"cartesianX": P[:, 0] / 1000.0, "cartesianY": P[:, 1] / 1000.0,
+                        "cartesianZ": P[:, 2] / 1000.0})
+    e57.close()
+    back = read_e57(tmp_path / "other.e57")
+    assert set(back) == {"points"} and np.allclose(back["points"], P, atol=1e-9)
+    write_e57(tmp_path / "ours.e57", P, None)
+    back = read_e57(tmp_path / "ours.e57")
+    assert set(back) == {"points"} and np.allclose(back["points"], P, atol=1e-12)
+
+
 def test_e57_same_cloud_same_bytes_other_cloud_other_guid(tmp_path):
     P, N = _cloud()
     write_e57(tmp_path / "a.e57", P, N)

@@ -124,7 +124,10 @@ def read_e57(path: str | Path) -> dict[str, np.ndarray]:
         points = e.CompressedVectorNode(scan.get("points"))
         proto = e.StructureNode(points.prototype())
         names = [f"cartesian{a}" for a in "XYZ"]
-        if proto.isDefined("nor:normalX"):
+        # the normals extension's names are well formed only where the file declares its prefix
+        # (a file written without normals, by another program, may not)
+        nor = any(imf.extensionsPrefix(i) == "nor" for i in range(imf.extensionsCount()))
+        if nor and proto.isDefined("nor:normalX"):
             names += [f"nor:normal{a}" for a in "XYZ"]
         n = points.childCount()
         bufs = {k: np.empty(n, np.float64) for k in names}
