@@ -348,7 +348,7 @@ def simulate(
     * ``arm_noise_scale``: the arm's reported-pose noise times this (position and rotation).
 
     ``dent_mm``: every freeform part gets a dent this deep (Gaussian profile of
-    ``dent_sigma_mm``, on the part's top where its scan sweeps) that its nominal mesh does not
+    ``dent_sigma_mm``, on the part's top, off its middle: DENT_AT) that its nominal mesh does not
     have: a defect for the nominal comparison to find (truth.json: the scan's ``dent``).
     ``nominal_datum``: rig.yaml gives each freeform's placement on the table
     (``nominal_pose``), as a user measures it by probing the part's datums with the arm: the
