@@ -354,3 +354,31 @@ def test_stripe_cut_into_pieces_by_dark_circles_is_removed_whole() -> None:
     # what is left where the stripe was is the plate, not the stripe
     assert np.median(out[on_plate].astype(float)) < 0.8 * 60 + 6
     assert not mask[np.abs(dist) > 20].any()
+
+
+def test_chessboard_corners_are_not_taken_for_stripe_pieces() -> None:
+    """Laser always on, a chessboard: the opening leaves X-shaped residues at every corner,
+    which line up along the board's rows like the pieces of a cut stripe; only the stripe (a
+    segment, long for its width) is removed, the corners away from it are left alone (before,
+    every corner in line was masked and the board could not be found)."""
+    from crossline.calibrate.lasers import remove_stripe
+
+    h, w = 600, 900
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    sq = 32  # squares a little wider than the opening's disc (17 px at 900 px)
+    board = ((u // sq + v // sq) % 2 == 0) & (u >= 128) & (u < 768) & (v >= 96) & (v < 480)
+    albedo = np.where(board, 0.85, 0.08)
+    albedo[(u < 128) | (u >= 768) | (v < 96) | (v >= 480)] = 0.3
+    dist = (v - 290 - np.tan(np.radians(8)) * (u - w / 2)) * np.cos(np.radians(8))
+    stripe = 300.0 * np.exp(-0.5 * (dist / 2.5) ** 2)
+    rng = np.random.default_rng(5)
+    img = np.clip(albedo * (120 + stripe) + rng.normal(0, 1.0, (h, w)), 0, 255).round().astype(np.uint8)
+    _, mask = remove_stripe(img)
+    lit = (np.abs(dist) < 2) & (albedo > 0.5)
+    assert mask[lit].mean() > 0.95
+    # the corners 40 px or more from the stripe: none masked
+    cu, cv_ = np.meshgrid(np.arange(128 + sq, 768, sq), np.arange(96 + sq, 480, sq))
+    far = np.abs((cv_ - 290 - np.tan(np.radians(8)) * (cu - w / 2)) * np.cos(np.radians(8))) > 40
+    assert far.sum() > 100
+    win = [mask[y - 3:y + 4, x - 3:x + 4].any() for x, y in zip(cu[far], cv_[far], strict=True)]
+    assert not any(win), f"{sum(win)} corners away from the stripe masked"

@@ -64,6 +64,7 @@ MIN_POSES = 2  # usable poses per laser: one pose's stripe is a line, two span t
 # not the stripe's (good stripes scatter by a tenth of a pixel or so)
 MAX_PLANE_RMS_PX = 3.0
 NOISE_K = 8.0  # the stripe stands this many noise sigmas above the laser-minus-board difference
+MIN_PIECE_ELONGATION = 2.2  # a stripe piece is longer than wide by this; corner residues 1.3-1.8
 STRIPE_OPEN_FRACTION = 0.012  # laser always on: the opening that removes the stripe, x sensor size
 
 
@@ -230,6 +231,23 @@ def _on_long_line(cand: np.ndarray, lab: np.ndarray, length: np.ndarray, min_len
     keep[hit] = True
     keep[0] = False
     keep &= length >= 10
+    # a piece of stripe is a segment, long for its width; the residues that the opening leaves
+    # at a chessboard's corners are X-shaped blobs, which also line up (along the board's
+    # rows) but are about as wide as long: elongation from each component's second moments
+    ys, xs = np.nonzero(lab)
+    ids = lab[ys, xs]
+    n = np.bincount(ids, minlength=len(length)).astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mx = np.bincount(ids, xs, len(length)) / n
+        my = np.bincount(ids, ys, len(length)) / n
+        dx, dy = xs - mx[ids], ys - my[ids]
+        cxx = np.bincount(ids, dx * dx, len(length)) / n
+        cyy = np.bincount(ids, dy * dy, len(length)) / n
+        cxy = np.bincount(ids, dx * dy, len(length)) / n
+        root = np.sqrt(np.maximum((cxx - cyy) ** 2 / 4 + cxy**2, 0.0))
+        big, small = (cxx + cyy) / 2 + root, (cxx + cyy) / 2 - root
+        elongation = np.sqrt(big / np.maximum(small, 1.0 / 12.0))  # a 1-px-wide line: L / 1
+    keep &= np.nan_to_num(elongation) >= MIN_PIECE_ELONGATION
     return keep
 
 
