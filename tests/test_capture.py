@@ -966,15 +966,18 @@ def test_foreign_laser_states_one_problem_per_state(capture: Path) -> None:
 
 def test_nominal_pose_is_the_parts_placement(capture: Path) -> None:
     (capture / "part.stl").write_text("solid part\nendsolid part\n")
-    c, s = float(np.cos(np.radians(15.0))), float(np.sin(np.radians(15.0)))
+    c, s_ = float(np.cos(np.radians(15.0))), float(np.sin(np.radians(15.0)))
     edit_rig(capture, lambda d: d["scans"].__setitem__("plate", {
         "artefact": "freeform", "nominal": "part.stl",
-        "nominal_pose": [600.0, 60.0, -2.5, c, 0.0, 0.0, s]}))
+        "nominal_pose": [600.0, 60.0, -2.5, c, 0.0, 0.0, s_]}))
     T = read_rig(capture / "rig.yaml").scans["plate"].T_base_nominal
     # a turn of 30 degrees about z, then the shift (quaternion (cos 15°, 0, 0, sin 15°))
     assert np.allclose(T[:3, 3], [600.0, 60.0, -2.5])
     assert np.isclose(np.degrees(np.arctan2(T[1, 0], T[0, 0])), 30.0)
     assert read_rig(capture / "rig.yaml").scans["gauge"].T_base_nominal is None
+    s = check_capture(capture)
+    assert s["scans"]["plate"]["nominal_pose"] == [600.0, 60.0, -2.5, c, 0.0, 0.0, s_]
+    assert "freeform (mesh part.stl, placed by nominal_pose)" in format_summary(s)
 
 
 @pytest.mark.parametrize(("pose", "mesh", "expected"), [

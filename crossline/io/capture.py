@@ -1136,6 +1136,7 @@ def check_capture(root: str | Path, images: bool = True) -> dict[str, Any]:
             "artefact": scan.spec.artefact,
             "nominal": scan.spec.nominal,
             "mesh": scan.spec.mesh,
+            "nominal_pose": None if scan.spec.nominal_pose is None else list(scan.spec.nominal_pose),
             "frames": len(scan.frames),
             "frame_format": scan.frame_ext.lstrip(".").lower(),
             "duration_s": float(scan.time_s[-1] - scan.time_s[0]),
@@ -1172,6 +1173,8 @@ def format_summary(summary: dict[str, Any]) -> str:
         nominal = ", ".join(f"{k} {v:g} mm" for k, v in sc["nominal"].items())
         if sc.get("mesh"):
             nominal = ", ".join(filter(None, [nominal, f"mesh {sc['mesh']}"]))
+        if sc.get("nominal_pose"):
+            nominal += ", placed by nominal_pose"
         lines.append(
             f"  scan {name:<8}{sc['artefact']}{' (' + nominal + ')' if nominal else ''}: "
             f"{sc['frames']} frames, {sc['duration_s']:.2f} s, pattern "
