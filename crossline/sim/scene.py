@@ -617,9 +617,7 @@ class FreeformPart(Primitive):
 
     def dent_function(self, P):
         """F(p): positive outside the dented surface, zero on it, in mm near the surface."""
-        X = self.to_unit(P)
-        g = mat3(X**3 / np.maximum(self.gauge(X), 1e-300)[:, None] ** 3, self.M)
-        return (self.gauge(X) - 1.0) / norm3(g) + self.dent.depth(P)
+        return (self.gauge(self.to_unit(P)) - 1.0) / norm3(self.design_gradient(P)) + self.dent.depth(P)
 
     def dent_step(self, P, D, iterations: int = 12):
         """Steps s (N,) with F(P + s D) = 0 near the design-surface points P, by Newton's method."""
