@@ -36,6 +36,7 @@ import numpy as np
 from crossline.errors import StageError
 from crossline.io.atomic import atomic_path, write_json
 from crossline.scan.refine import HALF_MM, MAX_WIDTH_RATIO, MIN_ANGLE_DEG, ArmPrior, usable_centres
+from crossline.tiles import slabs, statistical_inliers
 
 __all__ = [
     "LASER_CODES",
@@ -46,6 +47,7 @@ __all__ = [
     "make_mesh",
     "orient_normals",
     "read_ply",
+    "read_points_columns",
     "run_fuse",
     "voxel_down_sample",
     "write_ply",
@@ -60,7 +62,8 @@ NORMAL_MAX_NN = 100  # neighbours at most per normal: a stripe alone would give 
 
 @dataclass(frozen=True)
 class FusedCloud:
-    """A fused cloud: points (N, 3) mm, normals (N, 3), laser codes (N,) and frames (N,)."""
+    """A fused cloud: points (N, 3) mm, normals (N, 3) (float32, as the PLY stores them),
+    laser codes (N,) and frames (N,)."""
 
     points: np.ndarray
     normals: np.ndarray
@@ -95,12 +98,22 @@ def camera_centres(
 
     mc = np.stack([per_frame(pc[:, i]) for i in range(3)], 1) / counts[:, None]
     mb = np.stack([per_frame(pb[:, i]) for i in range(3)], 1) / counts[:, None]
-    qc = pc - mc[inv]
-    qb = pb - mb[inv]
+    # one centred column at a time: a long scan's (N, 3) copies would cost 24 B a point each
+    qb = [pb[:, j] - mb[inv, j] for j in range(3)]
     H = np.empty((F, 3, 3))
     for i in range(3):
+        qc = pc[:, i] - mc[inv, i]
         for j in range(3):
-            H[:, i, j] = per_frame(qc[:, i] * qb[:, j])
+            H[:, i, j] = per_frame(qc * qb[j])
+    del qb, qc
+    return frames, _kabsch_centres(frames, counts, mc, mb, H)
+
+
+def _kabsch_centres(frames: np.ndarray, counts: np.ndarray, mc: np.ndarray, mb: np.ndarray,
+                    H: np.ndarray) -> np.ndarray:
+    """Camera centres (F, 3) from each frame's point means in cam and base (F, 3) and their
+    centred cross-covariance H (F, 3, 3); see :func:`camera_centres`."""
+    F = len(frames)
     U, s, Vt = np.linalg.svd(H)
     ok = (counts >= 3) & (s[:, 1] > 1e-6 * np.maximum(s[:, 0], 1e-300))
     D = np.ones((F, 3))
@@ -108,13 +121,58 @@ def camera_centres(
     R = np.swapaxes(Vt, 1, 2) @ (D[:, :, None] * np.swapaxes(U, 1, 2))
     centres = mb - np.einsum("fij,fj->fi", R, mc)
     if not ok.any():
-        return frames, np.full((F, 3), np.nan)
+        return np.full((F, 3), np.nan)
     good = np.flatnonzero(ok)
     pos = np.searchsorted(frames[good], frames)
     lo = good[np.clip(pos - 1, 0, len(good) - 1)]
     hi = good[np.clip(pos, 0, len(good) - 1)]
     nearest = np.where(np.abs(frames[hi] - frames) <= np.abs(frames - frames[lo]), hi, lo)
-    return frames, centres[nearest]
+    return centres[nearest]
+
+
+class FrameMoments:
+    """Per-frame means and centred cross-covariances of points known in cam and base,
+    gathered chunk by chunk, that give :func:`camera_centres` without holding the
+    camera-frame points (a long scan's (N, 3) array of them is 24 B a point). Each chunk's
+    moments are centred on its own frame means and chunks are merged by the parallel-axis
+    rule, so the result is the one-pass-over-all answer to rounding."""
+
+    def __init__(self) -> None:
+        self._parts: list[tuple[np.ndarray, ...]] = []
+
+    def add(self, frame: np.ndarray, p_cam: np.ndarray, p_base: np.ndarray) -> None:
+        """Take in one chunk of points: frames (n,), cam (n, 3), base (n, 3)."""
+        if len(frame) == 0:
+            return
+        frames, inv, counts = np.unique(np.asarray(frame, np.int64), return_inverse=True,
+                                        return_counts=True)
+        F = len(frames)
+        pc = np.asarray(p_cam, dtype=np.float64)
+        pb = np.asarray(p_base, dtype=np.float64)
+        mc = np.stack([np.bincount(inv, pc[:, i], F) for i in range(3)], 1) / counts[:, None]
+        mb = np.stack([np.bincount(inv, pb[:, i], F) for i in range(3)], 1) / counts[:, None]
+        qc, qb = pc - mc[inv], pb - mb[inv]
+        H = np.stack([np.stack([np.bincount(inv, qc[:, i] * qb[:, j], F) for j in range(3)], 1)
+                      for i in range(3)], 1)
+        self._parts.append((frames, counts, mc, mb, H))
+
+    def centres(self) -> tuple[np.ndarray, np.ndarray]:
+        """Sorted frames (F,) and camera centres (F, 3) in the base frame, as
+        :func:`camera_centres` gives them."""
+        if not self._parts:
+            return np.zeros(0, np.int64), np.zeros((0, 3))
+        fr, cnt, mc, mb, H = (np.concatenate(a) for a in zip(*self._parts, strict=True))
+        frames, inv = np.unique(fr, return_inverse=True)
+        F = len(frames)
+        counts = np.bincount(inv, cnt, F)
+        Mc = np.stack([np.bincount(inv, cnt * mc[:, i], F) for i in range(3)], 1) / counts[:, None]
+        Mb = np.stack([np.bincount(inv, cnt * mb[:, i], F) for i in range(3)], 1) / counts[:, None]
+        dc, db = mc - Mc[inv], mb - Mb[inv]
+        HH = np.empty((F, 3, 3))
+        for i in range(3):
+            for j in range(3):
+                HH[:, i, j] = np.bincount(inv, H[:, i, j] + cnt * dc[:, i] * db[:, j], F)
+        return frames, _kabsch_centres(frames, counts.round().astype(np.int64), Mc, Mb, HH)
 
 
 def estimate_normals(
@@ -127,22 +185,55 @@ def estimate_normals(
     the viewpoint made perpendicular to the line, or the view direction itself when there
     are no neighbours at all. Returns the normals and the mask of those fallbacks.
     """
+    points = np.asarray(points, dtype=np.float64)
+    normals = np.empty((len(points), 3))
+    degenerate = np.zeros(len(points), dtype=bool)
+    # slab by slab (crossline.tiles): every neighbour within the radius is in the slab's reach
+    for s in slabs(points, float(radius)):
+        views = None if viewpoints is None else viewpoints[s.core]
+        normals[s.core], degenerate[s.core] = _slab_normals(points[s.reach], s.start, s.stop,
+                                                            radius, views)
+    return normals, degenerate
+
+
+def _slab_normals(reach: np.ndarray, start: int, stop: int, radius: float,
+                  viewpoints: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Normals and fallback mask of ``reach[start:stop]`` from neighbours among ``reach``
+    (:func:`estimate_normals` for one slab; ``viewpoints`` are those of the core points)."""
     import open3d as o3d
 
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(reach))
     pcd.estimate_covariances(o3d.geometry.KDTreeSearchParamHybrid(radius=float(radius),
                                                                   max_nn=NORMAL_MAX_NN))
-    C = np.asarray(pcd.covariances)
+    C = np.asarray(pcd.covariances)[start:stop]
+    del pcd
     w, V = np.linalg.eigh(C)
     normals = V[:, :, 0].copy()
     line = w[:, 1] <= 1e-4 * w[:, 2]
     alone = w[:, 2] <= 0
     degenerate = line | alone
     if viewpoints is not None and degenerate.any():
-        v = viewpoints[degenerate] - points[degenerate]
+        v = viewpoints[degenerate] - reach[start:stop][degenerate]
         t = V[degenerate, :, 2]
         n = np.where(alone[degenerate, None], v, v - np.sum(v * t, axis=1, keepdims=True) * t)
         normals[degenerate] = n / np.linalg.norm(n, axis=1, keepdims=True)
+    return normals, degenerate
+
+
+def _normals_towards_camera(
+    points: np.ndarray, radius: float, frames: np.ndarray, centres: np.ndarray,
+    point_frame: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Normals (N, 3) float32 facing the camera of each point's frame (``centres`` (F, 3) of
+    the sorted ``frames``), and the fallback mask: :func:`estimate_normals` then
+    :func:`orient_normals`, a slab at a time, never an (N, 3) array of viewpoints."""
+    normals = np.empty((len(points), 3), dtype=np.float32)
+    degenerate = np.zeros(len(points), dtype=bool)
+    for s in slabs(points, float(radius)):
+        views = centres[np.searchsorted(frames, point_frame[s.core])]
+        n, deg = _slab_normals(points[s.reach], s.start, s.stop, radius, views)
+        normals[s.core] = orient_normals(points[s.core], n, views)
+        degenerate[s.core] = deg
     return normals, degenerate
 
 
@@ -208,6 +299,7 @@ def fuse_cloud(
     widths: np.ndarray | None = None,
     crossing_max_width_ratio: float = MAX_WIDTH_RATIO,
     threads: int = 1,
+    cameras: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> FusedCloud:
     """Optional pose refinement, statistical outlier removal, optional voxel down-sampling
     (per laser), oriented normals.
@@ -222,16 +314,23 @@ def fuse_cloud(
     fitted either side of a crossing and the smallest crossing angle it uses; with
     ``widths`` (N,), each centre's column cut in px, centres cut over
     ``crossing_max_width_ratio`` x their laser's median make no crossings
-    (:func:`crossline.scan.refine.usable_centres`).
+    (:func:`crossline.scan.refine.usable_centres`). ``cameras`` = (sorted frames, camera
+    centres (F, 3) in the base frame, e.g. from :class:`FrameMoments`) stands in for
+    ``points_cam`` where the scan is too long to hold those.
     """
-    import open3d as o3d
-
     p = np.ascontiguousarray(points, dtype=np.float64)
     lab = np.asarray(laser)
     if lab.dtype.kind in "OUS":
         lab = np.select([lab.astype(str) == "A", lab.astype(str) == "B"], [1, 2], 0)
     lab = lab.astype(np.uint8)
     fr = np.asarray(frame, dtype=np.int64)
+    # a long scan's arrays are large: hold each once (the caller may hand them over)
+    del points, laser, frame
+    if cameras is None and points_cam is not None:
+        cameras = camera_centres(fr, points_cam, p)
+    del points_cam
+    if cameras is not None and not np.isfinite(cameras[1]).all():
+        cameras = None
     stats: dict[str, Any] = {"n_input": len(p), "by_laser_input": _by_laser(lab)}
     if len(p) == 0:
         raise StageError("no points to fuse")
@@ -244,20 +343,23 @@ def fuse_cloud(
         log.info("pose refinement skipped: %s", stats["refine"]["skipped"])
     elif refine_prior is not None:
         mask = None if widths is None else usable_centres(lab, widths, crossing_max_width_ratio)
-        p, stats["refine"] = _refine(p, lab, fr, points_cam, refine_prior, frame_table, threads,
-                                     crossing_half_mm, crossing_min_angle_deg, mask)
+        p, cameras, stats["refine"] = _refine(p, lab, fr, cameras, refine_prior, frame_table,
+                                              threads, crossing_half_mm, crossing_min_angle_deg,
+                                              mask)
 
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
     if neighbours > 0 and len(p) > neighbours:
-        _, ind = pcd.remove_statistical_outlier(nb_neighbors=int(neighbours), std_ratio=float(std_ratio))
-        keep = np.zeros(len(p), dtype=bool)
-        keep[np.asarray(ind, dtype=np.int64)] = True
+        # Open3D's test, slab by slab (crossline.tiles): the same points kept, a bounded memory
+        keep = statistical_inliers(p, int(neighbours), float(std_ratio), normal_radius_mm,
+                                   threads=threads)
     else:
         keep = np.ones(len(p), dtype=bool)
     stats["n_outliers"] = int((~keep).sum())
     stats["n_after_outlier_removal"] = int(keep.sum())
-    p, lab, fr = p[keep], lab[keep], fr[keep]
-    pc = None if points_cam is None else np.asarray(points_cam, dtype=np.float64)[keep]
+    if not keep.all():
+        kept = np.flatnonzero(keep)
+        p, lab, fr = p[kept], lab[kept], fr[kept]
+        del kept
+    del keep
 
     if voxel_mm > 0:
         vp, vlab, vfr = voxel_down_sample(p, lab, fr, voxel_mm)
@@ -266,37 +368,35 @@ def fuse_cloud(
     stats["n_output"] = len(vp)
     stats["by_laser_output"] = _by_laser(vlab)
 
-    viewpoints = None
-    if pc is not None:
-        frames, centres = camera_centres(fr, pc, p)
-        if np.isfinite(centres).all():
-            viewpoints = centres[np.searchsorted(frames, vfr)]
-    normals, degenerate = estimate_normals(vp, normal_radius_mm, viewpoints)
-    normals = orient_normals(vp, normals, viewpoints)
-    stats["normals_oriented_to"] = "camera" if viewpoints is not None else "dominant direction"
+    del fr, p
+    if cameras is not None:
+        normals, degenerate = _normals_towards_camera(vp, normal_radius_mm, *cameras, vfr)
+    else:
+        normals, degenerate = estimate_normals(vp, normal_radius_mm)
+        normals = orient_normals(vp, normals, None).astype(np.float32)
+    stats["normals_oriented_to"] = "camera" if cameras is not None else "dominant direction"
     stats["normals_from_view"] = int(degenerate.sum())
     stats["frames"] = len(np.unique(vfr))
     if len(vp):
         stats["bbox_min_mm"] = vp.min(0).tolist()
         stats["bbox_max_mm"] = vp.max(0).tolist()
-    return FusedCloud(vp, normals, vlab, vfr.astype(np.int32), stats)
+    return FusedCloud(vp, normals, vlab, vfr.astype(np.int32, copy=False), stats)
 
 
 def _refine(
-    p: np.ndarray, lab: np.ndarray, fr: np.ndarray, points_cam: np.ndarray | None,
+    p: np.ndarray, lab: np.ndarray, fr: np.ndarray, cameras: tuple[np.ndarray, np.ndarray] | None,
     prior: ArmPrior, frame_table: tuple[np.ndarray, np.ndarray, np.ndarray] | None, threads: int,
     half_mm: float, min_angle_deg: float, crossing_mask: np.ndarray | None,
-) -> tuple[np.ndarray, dict[str, Any]]:
-    """Points with refined per-frame poses, and the stats of the refinement (JSON-ready)."""
-    from crossline.scan.refine import refine_frames
+) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], dict[str, Any]]:
+    """Points with refined per-frame poses, the camera centres moved with them, and the stats
+    of the refinement (JSON-ready)."""
+    from crossline.scan.refine import correction_transforms, refine_frames
 
-    if points_cam is None:
+    if cameras is None:
         raise StageError("pose refinement needs the points in the camera frame (x_cam, y_cam, "
-                         "z_cam) to place each frame's camera; the points file has none")
-    frames, views = camera_centres(fr, np.asarray(points_cam, dtype=np.float64), p)
-    if not np.isfinite(views).all():
-        raise StageError("pose refinement: no frame has enough non-collinear points to place "
-                         "its camera")
+                         "z_cam) to place each frame's camera, and a frame with enough "
+                         "non-collinear points to place it; the points file has neither")
+    frames, views = cameras
     times = origins = None
     if frame_table is not None:
         tf, tt, to = (np.asarray(a) for a in frame_table)
@@ -332,7 +432,10 @@ def _refine(
             "correction_rms_mm": ref.frame_rms.tolist(),
         },
     }
-    return ref.points, info
+    # every point of a frame moves with it, so its camera centre does too
+    C = correction_transforms(ref.rotation, ref.translation, ref.origins)
+    moved = np.einsum("fij,fj->fi", C[:, :3, :3], views) + C[:, :3, 3]
+    return ref.points, (frames, moved), info
 
 
 def _by_laser(codes: np.ndarray) -> dict[str, int]:
@@ -353,29 +456,33 @@ _PLY_DTYPES = {"double": "<f8", "float64": "<f8", "float": "<f4", "float32": "<f
                "uchar": "u1", "uint8": "u1", "char": "i1", "int8": "i1", "int": "<i4",
                "int32": "<i4", "uint": "<u4", "uint32": "<u4", "short": "<i2", "int16": "<i2",
                "ushort": "<u2", "uint16": "<u2"}
+_PLY_BLOCK = 1 << 20  # vertex rows written at a time
 
 
 def write_ply(path: str | Path, cloud: FusedCloud) -> None:
     """Write the cloud as binary little-endian PLY, atomically; same cloud, same bytes."""
-    arr = np.empty(len(cloud.points), dtype=_PLY_FIELDS)
-    for i, k in enumerate(("x", "y", "z")):
-        arr[k] = cloud.points[:, i]
-    for i, k in enumerate(("nx", "ny", "nz")):
-        arr[k] = cloud.normals[:, i]
-    arr["laser"] = cloud.laser
-    arr["frame"] = cloud.frame
+    n = len(cloud.points)
     header = [
         "ply",
         "format binary_little_endian 1.0",
         "comment crossline fused cloud: base frame, mm",
         "comment laser: 1 = A, 2 = B, 0 = unknown; frame: first frame of the point",
-        f"element vertex {len(arr)}",
+        f"element vertex {n}",
         *(f"property {_PLY_TYPES[t]} {n}" for n, t in _PLY_FIELDS),
         "end_header",
     ]
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.write(("\n".join(header) + "\n").encode("ascii"))
-        f.write(arr.tobytes())
+        # a block of rows at a time: the whole vertex table would be another 41 B a point
+        for a in range(0, max(n, 1), _PLY_BLOCK):
+            rows = np.empty(min(_PLY_BLOCK, n - a), dtype=_PLY_FIELDS)
+            for i, k in enumerate(("x", "y", "z")):
+                rows[k] = cloud.points[a:a + len(rows), i]
+            for i, k in enumerate(("nx", "ny", "nz")):
+                rows[k] = cloud.normals[a:a + len(rows), i]
+            rows["laser"] = cloud.laser[a:a + len(rows)]
+            rows["frame"] = cloud.frame[a:a + len(rows)]
+            f.write(rows.tobytes())
 
 
 def read_ply(path: str | Path) -> dict[str, np.ndarray]:
@@ -522,8 +629,6 @@ def run_fuse(
     crossing angle used, ``crossing_max_width_ratio`` the longest column cut (over its
     laser's median) whose centre may make a crossing (0: any; needs the points' ``width``).
     """
-    import pandas as pd
-
     points = Path(points)
     if not points.is_file():
         raise StageError(f"{points}: points file not found (run triangulate first)")
@@ -553,37 +658,20 @@ def run_fuse(
                 f"(> 0), crossing_min_angle_deg={crossing_min_angle_deg} (0..90), "
                 f"crossing_max_width_ratio={crossing_max_width_ratio} (>= 0, 0 = off)")
     table = _read_frames(frames) if refine_poses and frames is not None else None
-    try:
-        df = pd.read_parquet(points)
-    except Exception as exc:  # pyarrow raises several types for broken files
-        raise StageError(f"{points}: cannot be read as parquet ({exc})") from exc
-    missing = [c for c in ("x", "y", "z") if c not in df.columns]
-    if missing:
-        what = ("a stripes file (pixel centres u, v), not a points file: triangulate turns it into "
-                "points" if {"u", "v"} <= set(df.columns) else "expected frame, laser, x, y, z, ...")
-        raise StageError(f"{points}: missing column(s) {missing}; {what}")
-    if len(df) == 0:
-        raise StageError(f"{points}: has no points; nothing to fuse")
+    cols = read_points_columns(points)
     if table is not None:
         _same_scan(points, Path(frames), len(table[0]))
-    xyz = df[["x", "y", "z"]].to_numpy(np.float64)
-    finite = np.isfinite(xyz).all(1)
-    if not finite.any():
-        raise StageError(f"{points}: none of its {len(df)} points has finite x, y, z; nothing to fuse")
-    laser = df["laser"].astype(str).to_numpy() if "laser" in df else np.full(len(df), "?")
-    frame = df["frame"].to_numpy(np.int64) if "frame" in df else np.zeros(len(df), np.int64)
-    cam = None
-    if all(c in df for c in ("x_cam", "y_cam", "z_cam")):
-        cam = df[["x_cam", "y_cam", "z_cam"]].to_numpy(np.float64)[finite]
+    n_non_finite = int(cols["non_finite"])
+    # popped, so that fuse_cloud holds the only reference and can let each array go
     cloud = fuse_cloud(
-        xyz[finite], laser[finite], frame[finite], cam, neighbours=neighbours,
-        std_ratio=std_ratio, voxel_mm=voxel_mm, normal_radius_mm=normal_radius_mm,
-        refine_prior=prior, frame_table=table, crossing_half_mm=crossing_half_mm,
-        crossing_min_angle_deg=crossing_min_angle_deg,
-        widths=df["width"].to_numpy(np.float64)[finite] if "width" in df else None,
-        crossing_max_width_ratio=crossing_max_width_ratio, threads=threads,
+        cols.pop("xyz"), cols.pop("laser"), cols.pop("frame"), cameras=cols.pop("cameras", None),
+        neighbours=neighbours, std_ratio=std_ratio, voxel_mm=voxel_mm,
+        normal_radius_mm=normal_radius_mm, refine_prior=prior, frame_table=table,
+        crossing_half_mm=crossing_half_mm, crossing_min_angle_deg=crossing_min_angle_deg,
+        widths=cols.pop("width", None), crossing_max_width_ratio=crossing_max_width_ratio,
+        threads=threads,
     )
-    cloud.stats["n_non_finite"] = int((~finite).sum())
+    cloud.stats["n_non_finite"] = n_non_finite
     cloud.stats["parameters"] = {"neighbours": neighbours, "std_ratio": std_ratio,
                                  "voxel_mm": voxel_mm, "normal_radius_mm": normal_radius_mm,
                                  "mesh": mesh, "refine_poses": bool(refine_poses)}
@@ -606,6 +694,77 @@ def run_fuse(
     if stats is not None:
         write_json(stats, cloud.stats)
     return cloud
+
+
+_POINT_COLUMNS = ("frame", "laser", "x", "y", "z", "x_cam", "y_cam", "z_cam", "width")
+
+
+def read_points_columns(path: Path) -> dict[str, Any]:
+    """The columns fuse needs from a points parquet, row group by row group into arrays.
+
+    Returns ``xyz`` (N, 3) float64 base frame, ``laser`` (N,) uint8 codes (1 = A, 2 = B,
+    0 = other), ``frame`` (N,) int64 and ``width`` (N,) float32 (where the file has it) of the
+    points with finite x, y, z; ``non_finite`` counts the others. Where the file has x_cam,
+    y_cam, z_cam, ``cameras`` = (frames, camera centres) from them (:class:`FrameMoments`)
+    instead of the points themselves. Strings never become Python objects: a long scan's
+    DataFrame would hold several hundred bytes a point.
+    """
+    import pyarrow.compute as pc
+    import pyarrow.parquet as pq
+
+    try:
+        f = pq.ParquetFile(path)
+        names = set(f.schema_arrow.names)
+    except Exception as exc:  # pyarrow raises several types for broken files
+        raise StageError(f"{path}: cannot be read as parquet ({exc})") from exc
+    missing = [c for c in ("x", "y", "z") if c not in names]
+    if missing:
+        what = ("a stripes file (pixel centres u, v), not a points file: triangulate turns it into "
+                "points" if {"u", "v"} <= names else "expected frame, laser, x, y, z, ...")
+        raise StageError(f"{path}: missing column(s) {missing}; {what}")
+    n = f.metadata.num_rows
+    if n == 0:
+        raise StageError(f"{path}: has no points; nothing to fuse")
+    cam = all(c in names for c in ("x_cam", "y_cam", "z_cam"))
+    out: dict[str, Any] = {"xyz": np.empty((n, 3)), "laser": np.zeros(n, np.uint8),
+                           "frame": np.zeros(n, np.int64)}
+    moments = FrameMoments() if cam else None
+    if "width" in names:
+        out["width"] = np.empty(n, np.float32)
+    k = 0
+    try:
+        for g in range(f.num_row_groups):
+            t = f.read_row_group(g, columns=[c for c in _POINT_COLUMNS if c in names])
+            xyz = np.column_stack([t[c].to_numpy() for c in ("x", "y", "z")]).astype(np.float64)
+            ok = np.isfinite(xyz).all(1)
+            m = int(ok.sum())
+            out["xyz"][k:k + m] = xyz[ok]
+            if "laser" in names:
+                lab = t["laser"].cast("string")
+                codes = (np.asarray(pc.equal(lab, "A").fill_null(False)).astype(np.uint8)
+                         + 2 * np.asarray(pc.equal(lab, "B").fill_null(False)).astype(np.uint8))
+                out["laser"][k:k + m] = codes[ok]
+            if "frame" in names:
+                out["frame"][k:k + m] = t["frame"].to_numpy()[ok]
+            if moments is not None:
+                moments.add(out["frame"][k:k + m], np.column_stack(
+                    [t[c].to_numpy() for c in ("x_cam", "y_cam", "z_cam")])[ok], xyz[ok])
+            if "width" in names:
+                out["width"][k:k + m] = t["width"].to_numpy()[ok]
+            k += m
+    except StageError:
+        raise
+    except Exception as exc:
+        raise StageError(f"{path}: cannot be read as parquet ({exc})") from exc
+    if k == 0:
+        raise StageError(f"{path}: none of its {n} points has finite x, y, z; nothing to fuse")
+    for key in ("xyz", "laser", "frame", "width"):
+        if key in out and k < n:
+            out[key] = out[key][:k]
+    out["non_finite"] = n - k
+    if moments is not None:
+        out["cameras"] = moments.centres()
+    return out
 
 
 def _same_scan(points: Path, frames: Path, n_frames: int) -> None:

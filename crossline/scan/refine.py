@@ -166,15 +166,20 @@ def _stripes(frame_pos: np.ndarray, laser: np.ndarray, p: np.ndarray):
     """
     key = frame_pos.astype(np.int64) * 4 + laser.astype(np.int64)
     ukey, sid, cnt = np.unique(key, return_inverse=True, return_counts=True)
+    del key
     S = len(ukey)
     mean = np.stack([np.bincount(sid, p[:, i], S) for i in range(3)], 1) / cnt[:, None]
-    q = p - mean[sid]
+    # one centred column at a time: (N, 3) temporaries cost a long scan 24 B a point each
+    q = [p[:, i] - mean[sid, i] for i in range(3)]
     C = np.empty((S, 3, 3))
     for i in range(3):
         for j in range(i, 3):
-            C[:, i, j] = C[:, j, i] = np.bincount(sid, q[:, i] * q[:, j], S)
+            C[:, i, j] = C[:, j, i] = np.bincount(sid, q[i] * q[j], S)
     axis = np.linalg.eigh(C)[1][:, :, 2]
-    along = np.sum(q * axis[sid], axis=1)
+    along = q[0] * axis[sid, 0]
+    for i in (1, 2):
+        along += q[i] * axis[sid, i]
+    del q
     order = np.lexsort((along, sid))
     start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
     return order, sid[order], start, start + cnt
@@ -583,8 +588,12 @@ def refine_frames(
         if mask.shape != lab.shape:
             raise ValueError(f"crossing_mask has shape {mask.shape}, the points {lab.shape}")
         use = ab & mask
-    cr = find_crossings(fpos[use], lab[use], p[use], views, half_mm=half_mm,
-                        min_angle_deg=min_angle_deg, threads=threads)
+    if use.all():  # no copies of a long scan's arrays when every point may cross
+        cr = find_crossings(fpos, lab, p, views, half_mm=half_mm, min_angle_deg=min_angle_deg,
+                            threads=threads)
+    else:
+        cr = find_crossings(fpos[use], lab[use], p[use], views, half_mm=half_mm,
+                            min_angle_deg=min_angle_deg, threads=threads)
     t1 = time.perf_counter()
     e, beta, info = solve_errors(cr, org, prior, times, huber=huber)
     C = correction_transforms(e[:, :3], e[:, 3:], org)
