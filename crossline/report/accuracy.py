@@ -23,6 +23,7 @@ import json
 import logging
 import math
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -79,6 +80,9 @@ DEFAULT_METROLOGY: dict[str, Any] = {
     # Monte Carlo draws per contributor for each figure's uncertainty (0: none); u to about
     # 1 / sqrt(2 (draws - 1)) of itself, 5 % at 200
     "uncertainty_draws": 200,
+    # points the Monte Carlo is run on at most (a uniform sample of a longer scan; 0 = all):
+    # each draw re-triangulates them, so its time grows with them
+    "uncertainty_points": 200000,
 }
 
 FORM_KEYS = {"all": "form_error_mm", "vdi": "form_error_vdi_mm", "d95": "form_error_d95_mm",
@@ -440,6 +444,11 @@ def _alignment_error(T_nominal_cloud: np.ndarray, T_base_nominal: np.ndarray,
     return {k: v for k, v in e.items() if isinstance(v, int | float)}
 
 
+def _whole_cloud(figures: Any, subset: np.ndarray | None = None) -> Any:
+    """A figures function that needs no per-point state: the same on any subset."""
+    return figures
+
+
 def _uncertainty(sd: ScanData, figures: Any, model: Any, met: dict, root: Path) -> dict[str, Any]:
     """Each figure's Monte Carlo uncertainty (:mod:`crossline.report.uncertainty`) on the scan's cloud."""
     from crossline.io.capture import read_frames_table
@@ -447,11 +456,16 @@ def _uncertainty(sd: ScanData, figures: Any, model: Any, met: dict, root: Path) 
 
     table = read_frames_table(root / "scans" / sd.name / "frames.csv")
     c = sd.cloud
-    laser = np.where(np.asarray(c["laser"]) == 2, "B", "A")
-    sp = uc.scan_points(c["points"], laser, c["frame"], table.frames, table.T_base_tool, model)
+    sub = uc.subsample(len(c["points"]), int(met["uncertainty_points"]))
+    pick = slice(None) if sub is None else sub
+    laser = np.where(np.asarray(c["laser"])[pick] == 2, "B", "A")
+    sp = uc.scan_points(np.asarray(c["points"])[pick], laser, np.asarray(c["frame"])[pick],
+                        table.frames, table.T_base_tool, model)
     draws = int(met["uncertainty_draws"])
-    out = {"figures": uc.monte_carlo(sp, model, figures, draws=draws, seed=int(met["seed"])),
+    out = {"figures": uc.monte_carlo(sp, model, figures(subset=sub), draws=draws,
+                                     seed=int(met["seed"])),
            "draws": draws, "frames": sp.n_frames, "points": len(sp.points),
+           "points_of_cloud": len(c["points"]),
            "contributors": list(uc.CONTRIBUTORS), "coverage_factor": uc.COVERAGE_FACTOR,
            "method": uc.METHOD}
     if model.missing:
@@ -522,7 +536,9 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
     tscan = (truth or {}).get("scans", {}).get(sd.name) if truth else None
     sd.plots["hist"] = None
     height_ref: tuple[np.ndarray, float] | None = None  # plane the top view's height is from
-    figures = None  # the artefact's figures as a function of its points, for the uncertainty
+    # the artefact's figures as a function of its points, given the indices of the points
+    # they are evaluated on (None: all), for the uncertainty
+    figures = None
     try:
         if sd.artefact == "gauge_block":
             nominal = float(sd.nominal.get("height", np.nan))
@@ -536,7 +552,7 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
             sd.plots["hist"] = {"values": g.heights, "xlabel": "height above the plate plane (mm)",
                                 "nominal": nominal, "bins": bins, "kind": "gauge"}
             height_ref = (g.plate_normal, g.plate_d)
-            figures = uc.gauge_figures(g, P, frames)
+            figures = partial(uc.gauge_figures, g, P, frames)
             if tscan:
                 out["truth"] = _gauge_truth(g, P, tscan, nominal)
         elif sd.artefact == "plane":
@@ -546,7 +562,7 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
             sd.plots["hist"] = {"values": r.distances, "xlabel": "distance to the fitted plane (mm)",
                                 "band": band, "bins": bins, "kind": "plane"}
             height_ref = (r.normal, r.d)
-            figures = uc.plane_figures(r, band)
+            figures = partial(_whole_cloud, uc.plane_figures(r, band))
             if tscan and "plane_base" in tscan:
                 nt, dt = _plane4(tscan["plane_base"], r.normal)
                 dev = P @ nt + dt
@@ -559,7 +575,7 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
                                   trim_sigma=float(met["sphere_trim_sigma"]), seed=seed)
             out["measurement"] = s.figures()
             out["a_vs_b"] = _ab(mt.compare_lasers, "sphere", P, labels, out, sphere=s)
-            figures = uc.sphere_figures(s)
+            figures = partial(uc.sphere_figures, s)
             views = _viewpoints(sd)
             if views is not None:
                 out["incidence"] = mt.sphere_by_incidence(P, s, views)

@@ -49,6 +49,7 @@ __all__ = [
     "plane_figures",
     "scan_points",
     "sphere_figures",
+    "subsample",
 ]
 
 CONTRIBUTORS = ("camera", "laser_planes", "handeye", "repeatability")
@@ -219,17 +220,20 @@ def _weighted_plane(p: np.ndarray, w: np.ndarray, like: np.ndarray) -> tuple[np.
     return (n, d) if float(n @ like) >= 0 else (-n, -d)
 
 
-def gauge_figures(g: Any, points: np.ndarray, frame: np.ndarray | None, min_frame_points: int = 20
-                  ) -> Figures:
+def gauge_figures(g: Any, points: np.ndarray, frame: np.ndarray | None, min_frame_points: int = 20,
+                  subset: np.ndarray | None = None) -> Figures:
     """The gauge block's mean height with the report's faces held fixed.
 
     ``g`` is the report's :class:`~crossline.report.metrics.GaugeResult` on ``points``;
-    ``frame`` the frame of each point where heights are referenced per frame.
+    ``frame`` the frame of each point where heights are referenced per frame; ``subset``
+    (indices), if given, the points the figures are evaluated on (:func:`subsample`).
     """
-    top, plate = np.flatnonzero(g.top_mask), np.flatnonzero(g.plate_mask)
+    top_mask, plate_mask = (g.top_mask, g.plate_mask) if subset is None else \
+        (g.top_mask[subset], g.plate_mask[subset])
+    top, plate = np.flatnonzero(top_mask), np.flatnonzero(plate_mask)
     per_frame = g.reference == "frame" and frame is not None
     if per_frame:
-        fr = np.asarray(frame)
+        fr = np.asarray(frame) if subset is None else np.asarray(frame)[subset]
         ufr, pinv = np.unique(fr[plate], return_inverse=True)
         tk = np.searchsorted(ufr, fr[top]).clip(0, max(len(ufr) - 1, 0))
 
@@ -265,9 +269,10 @@ def plane_figures(r: Any, band_mm: float) -> Figures:
     return figures
 
 
-def sphere_figures(s: Any) -> Figures:
-    """The ball's diameter and form error on the report's inliers (geometric fit, weighted)."""
-    inl = np.flatnonzero(s.inlier_mask)
+def sphere_figures(s: Any, subset: np.ndarray | None = None) -> Figures:
+    """The ball's diameter and form error on the report's inliers (geometric fit, weighted);
+    ``subset`` (indices), if given, the points the figures are evaluated on."""
+    inl = np.flatnonzero(s.inlier_mask if subset is None else s.inlier_mask[subset])
     x0 = np.r_[s.centre, s.radius]
 
     def figures(P: np.ndarray, w: np.ndarray) -> dict[str, float]:
@@ -298,6 +303,22 @@ def sphere_figures(s: Any) -> Figures:
                 "form_error_p95_mm": float(hi - lo)}
 
     return figures
+
+
+def subsample(n: int, max_points: int) -> np.ndarray | None:
+    """Indices of every k-th of ``n`` points, k the smallest stride that leaves at most
+    ``max_points`` (0: no limit), or None where ``n`` is not more than that.
+
+    Each draw re-triangulates every point it is given: on a long scan (millions of points)
+    200 draws per contributor take minutes. The draws move the points by smooth functions of
+    the calibration, and a cloud is stored frame by frame along its stripes, so a regular
+    stride keeps the points' spread over the surface (a random sample weights it anew: on a
+    ball cap of 2000 points that changed the camera's u by 2.5x); every frame keeps points and
+    is bootstrapped as before.
+    """
+    if max_points <= 0 or n <= max_points:
+        return None
+    return np.arange(0, n, -(-n // int(max_points)))
 
 
 def _finite_std(x: np.ndarray, enough: bool) -> float:
