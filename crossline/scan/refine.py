@@ -55,6 +55,7 @@ LEVER_MM = 300.0  # rotation prior from the position figure: the error spread ov
 HALF_MM = 0.6  # stripe fitted either side of a crossing, mm
 MIN_ANGLE_DEG = 30.0  # stripes crossing at a smaller angle are not used
 MIN_SPACINGS = 6  # a crossing's stripe curves reach at least this many point spacings either side
+_QUERY_ROWS = 500_000  # seeds searched for B neighbours at a time
 MAX_WIDTH_RATIO = 2.0  # centres of column cuts longer than this x their laser's median: no crossings
 
 
@@ -277,14 +278,24 @@ def find_crossings(
     fp = np.asarray(frame_pos, dtype=np.int64)
     lab = np.asarray(laser, dtype=np.int64)
     order, sid, start, end = _stripes(fp, lab, p)
-    po, fo, lo_ = p[order], fp[order], lab[order]
-    a = np.flatnonzero(lo_ == 1)
-    b = np.flatnonzero(lo_ == 2)
+    # a long scan's per-point arrays in the narrowest type that holds them (tens of millions
+    # of points: each int64 array is 8 B a point)
+    small = len(p) < 2**31 and (len(fp) == 0 or int(fp.max()) < 2**31)
+    itype = np.int32 if small else np.int64
+    order, sid = order.astype(itype), sid.astype(itype)
+    po, fo, lo_ = p[order], fp[order].astype(itype), lab[order].astype(np.int8)
+    del order
+    a = np.flatnonzero(lo_ == 1).astype(itype)
+    b = np.flatnonzero(lo_ == 2).astype(itype)
     empty = Crossings(*(np.zeros(0, np.int64),) * 2, np.zeros((0, 3)), np.zeros((0, 3)),
                       np.zeros(0), np.zeros(0), np.zeros(0))
     if len(a) < 8 or len(b) < 8:
         return empty
-    step = np.linalg.norm(np.diff(po, axis=0), axis=1)
+    # distance between neighbours in the order, a column at a time (no (N, 3) temporaries)
+    step = np.diff(po[:, 0]) ** 2
+    for i in (1, 2):
+        step += np.diff(po[:, i]) ** 2
+    np.sqrt(step, out=step)
     along = sid[1:] == sid[:-1]
     spacing = float(np.median(step[along])) if along.any() else 0.05
     # each laser's own point spacing (mm, between neighbouring points of a stripe): a
@@ -304,11 +315,16 @@ def find_crossings(
     tree = cKDTree(po[b])
     # every other A point is enough to seed: the crossing itself is found by the curve fits
     a = a[::2]
-    dist, jj = tree.query(po[a], k=4, distance_upper_bound=radius_mm, workers=threads)
-    hit = np.isfinite(dist)
-    ia = np.broadcast_to(a[:, None], dist.shape)[hit]
-    ib = b[jj[hit]]
-    dd = dist[hit]
+    ia_, ib_, dd_ = [], [], []
+    for c0 in range(0, len(a), _QUERY_ROWS):  # in blocks: k distances a row are 64 B
+        ac = a[c0:c0 + _QUERY_ROWS]
+        dist, jj = tree.query(po[ac], k=4, distance_upper_bound=radius_mm, workers=threads)
+        hit = np.isfinite(dist)
+        ia_.append(np.broadcast_to(ac[:, None], dist.shape)[hit].astype(np.int64))
+        ib_.append(b[jj[hit]].astype(np.int64))
+        dd_.append(dist[hit])
+    del tree
+    ia, ib, dd = np.concatenate(ia_), np.concatenate(ib_), np.concatenate(dd_)
     if len(ia) == 0:
         return empty
     # one seed per stripe pair and 2 mm cell: the closest A-B point pair there
@@ -359,7 +375,8 @@ def find_crossings(
     # how many candidates survive each step, for the stats: seeds (closest A-B point pairs),
     # both curve fits usable, crossing inside both windows at a fair angle, not a duplicate
     counts = {"seeds": len(ok), "fitted": int(ok.sum()), "kept": int(keep.sum()), "unique": len(k)}
-    return Crossings(fa[k], fb[k], x[k], nrm[k], gap[k], np.sqrt(lev_a[k] + lev_b[k]),
+    return Crossings(fa[k].astype(np.int64), fb[k].astype(np.int64), x[k], nrm[k], gap[k],
+                     np.sqrt(lev_a[k] + lev_b[k]),
                      np.arcsin(np.clip(sin[k], 0, 1)), counts)
 
 
