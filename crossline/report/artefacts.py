@@ -1,0 +1,491 @@
+"""Measure the calibrated artefacts in a point cloud: plane, gauge block, sphere.
+
+``measure_plane`` (the paper's Fig. 16) with its ``PlaneResult`` and ``plane_offset``;
+``measure_gauge_block`` (the paper's Fig. 10: every top-face point against the plate plane,
+the central length and parallelism) with its ``GaugeResult`` and the 2-D outline helpers it
+uses (``plane_basis``, convex hull edges and margins); ``measure_sphere`` (ISO 10360-8
+PSize / PForm) with its ``SphereResult`` and ``sphere_by_incidence``. Built on the fitting of
+``crossline.report.fitting``; split from ``crossline.report.metrics`` (issue 21.3), which
+re-exports these names.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.spatial import ConvexHull, QhullError
+
+from crossline.geometry import angle_between, fit_sphere, plane_distance
+from crossline.report.fitting import (
+    MIN_POINTS,
+    _orient,
+    fit_plane,
+    ransac_plane,
+    ransac_sphere,
+    robust_sigma,
+)
+
+__all__ = [
+    "GaugeResult",
+    "PlaneResult",
+    "SphereResult",
+    "measure_gauge_block",
+    "measure_plane",
+    "measure_sphere",
+    "plane_basis",
+    "plane_offset",
+    "sphere_by_incidence",
+]
+
+
+# ----------------------------------------------------------------------------- plane
+
+
+@dataclass(frozen=True)
+class PlaneResult:
+    """Least-squares plane of a flat artefact and the distances of its points to it."""
+
+    normal: np.ndarray
+    d: float
+    distances: np.ndarray  # (N,) signed, mm
+    band_mm: float
+
+    def figures(self) -> dict[str, Any]:
+        """The plain numbers: n, RMS, share within the band, flatness (full and 95 %)."""
+        r = self.distances
+        lo, hi = np.percentile(r, [2.5, 97.5])
+        return {
+            "n": int(r.size),
+            "normal": self.normal.tolist(),
+            "d_mm": self.d,
+            "mean_mm": float(r.mean()),
+            "std_mm": float(r.std(ddof=1)) if r.size > 1 else 0.0,
+            "rms_mm": float(np.sqrt(np.mean(r**2))),
+            "band_mm": self.band_mm,
+            "share_within_band": float(np.mean(np.abs(r) <= self.band_mm)),
+            "flatness_mm": float(r.max() - r.min()),
+            "flatness_95_mm": float(hi - lo),
+            "min_mm": float(r.min()),
+            "max_mm": float(r.max()),
+        }
+
+
+def measure_plane(
+    points: np.ndarray, *, band_mm: float = 0.05, up: np.ndarray | None = None
+) -> PlaneResult:
+    """Least-squares plane of every point (the paper's Fig. 16) and the distances to it."""
+    p = np.asarray(points, dtype=np.float64)
+    if len(p) < MIN_POINTS:
+        raise ValueError(f"measure_plane needs at least {MIN_POINTS} points, got {len(p)}")
+    n, d = _orient(*fit_plane(p), up)
+    return PlaneResult(n, d, plane_distance(p, n, d), band_mm)
+
+
+def plane_offset(
+    plane_a: tuple[np.ndarray, float], plane_b: tuple[np.ndarray, float], at: np.ndarray
+) -> tuple[float, float]:
+    """Offset (mm) of plane b from plane a measured at point ``at`` along a's normal, and their angle (rad).
+
+    The offset is the distance from ``at``'s projection on plane a to plane b, along a's
+    normal: what a height gauge would read between the two planes there.
+    """
+    na, da = plane_a
+    nb, db = plane_b
+    if float(na @ nb) < 0:
+        nb, db = -nb, -db
+    foot = at - (at @ na + da) * na
+    # along a's normal from the foot to plane b: t with nb·(foot + t·na) + db = 0
+    t = -(foot @ nb + db) / float(na @ nb)
+    return float(t), float(angle_between(na, nb))
+
+
+# ----------------------------------------------------------------------------- gauge block
+
+
+@dataclass(frozen=True)
+class GaugeResult:
+    """Height of a gauge block standing on a surface plate, from one point cloud."""
+
+    nominal_mm: float
+    plate_normal: np.ndarray  # points up, from the plate towards the top face
+    plate_d: float
+    top_normal: np.ndarray
+    top_d: float
+    heights: np.ndarray  # (n_top,) height of each top-face point (see ``reference``)
+    top_mask: np.ndarray  # (N,) top-face points used (away from the edges)
+    plate_mask: np.ndarray  # (N,) plate points used (away from the block)
+    plate_residuals: np.ndarray  # (n_plate,)
+    central_length_mm: float
+    length_variation_mm: float
+    edge_margin_mm: float
+    # "frame": each height is referenced to the plate as seen in the same frame; "plane": to
+    # the plate plane fitted over the whole scan (the paper's Fig. 10)
+    reference: str = "plane"
+    heights_plane: np.ndarray | None = None  # (n,) the paper's heights of the same points
+    frame_offsets: np.ndarray | None = None  # per-frame plate offset from the plate plane, mm
+
+    def figures(self) -> dict[str, Any]:
+        """Mean, std, n, error of the mean against nominal, and the extra figures."""
+        h = self.heights
+        n = int(h.size)
+        std = float(h.std(ddof=1)) if n > 1 else 0.0
+        mean = float(h.mean())
+        return {
+            "nominal_mm": self.nominal_mm,
+            "n": n,
+            "n_plate": int(self.plate_mask.sum()),
+            "mean_mm": mean,
+            "std_mm": std,
+            "error_mm": mean - self.nominal_mm,
+            "sem_mm": std / np.sqrt(n) if n else float("nan"),
+            "median_mm": float(np.median(h)),
+            "min_mm": float(h.min()),
+            "max_mm": float(h.max()),
+            "central_length_mm": self.central_length_mm,
+            "central_length_error_mm": self.central_length_mm - self.nominal_mm,
+            "length_variation_mm": self.length_variation_mm,
+            "parallelism_deg": float(np.degrees(angle_between(self.plate_normal, self.top_normal))),
+            "plate_rms_mm": float(np.sqrt(np.mean(self.plate_residuals**2))),
+            "plate_normal": self.plate_normal.tolist(),
+            "plate_d_mm": self.plate_d,
+            "edge_margin_mm": self.edge_margin_mm,
+            "reference": self.reference,
+            **(
+                {
+                    "plane_reference_mean_mm": float(self.heights_plane.mean()),
+                    "plane_reference_std_mm": float(self.heights_plane.std(ddof=1)),
+                    "plane_reference_error_mm": float(self.heights_plane.mean()) - self.nominal_mm,
+                    "frames": int(self.frame_offsets.size),
+                    "frame_offset_std_mm": float(self.frame_offsets.std(ddof=1))
+                    if self.frame_offsets.size > 1 else 0.0,
+                }
+                if self.heights_plane is not None and self.frame_offsets is not None
+                else {}
+            ),
+        }
+
+
+def plane_basis(n: np.ndarray) -> np.ndarray:
+    """Two orthonormal vectors (2, 3) spanning the plane with unit normal n (right-handed with n)."""
+    a = np.eye(3)[int(np.argmin(np.abs(n)))]
+    e1 = np.cross(n, a)
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(n, e1)])
+
+
+def _hull_signed_distance(hull_eq: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Signed distance of 2-D points to a convex polygon: < 0 inside (exact), > 0 outside.
+
+    Outside, the largest edge-line distance is used: exact beside an edge, smaller than the
+    true distance near a corner (so a margin test excludes slightly more there, never less
+    inside).
+    """
+    out = np.empty(len(xy))
+    for s in range(0, len(xy), 65536):  # bounded memory: (chunk, E) at a time
+        out[s : s + 65536] = (xy[s : s + 65536] @ hull_eq[:, :2].T + hull_eq[:, 2]).max(axis=1)
+    return out
+
+
+def _polygon_centroid(v: np.ndarray) -> np.ndarray:
+    """Area centroid of a polygon (M, 2) given in order."""
+    x, y = v[:, 0], v[:, 1]
+    xn, yn = np.roll(x, -1), np.roll(y, -1)
+    cross = x * yn - xn * y
+    a = cross.sum() / 2
+    if abs(a) < 1e-12:
+        return v.mean(0)
+    return np.array([((x + xn) * cross).sum(), ((y + yn) * cross).sum()]) / (6 * a)
+
+
+def _hull(xy: np.ndarray) -> ConvexHull | None:
+    try:
+        return ConvexHull(xy)
+    except (QhullError, ValueError):
+        return None
+
+
+def _edges(hull: ConvexHull, min_length: float = 0.5) -> np.ndarray:
+    """The hull's edge lines (E, 3), without the many tiny edges noise puts at its corners.
+
+    Leaving out an edge enlarges the polygon only at a corner, by less than the edge's
+    length: inside it, distances to the long edges that remain are unchanged.
+    """
+    v = hull.points[hull.simplices]
+    length = np.linalg.norm(v[:, 1] - v[:, 0], axis=1)
+    keep = length >= min_length
+    if keep.sum() < 3:
+        keep = length >= np.sort(length)[-3]
+    return hull.equations[keep]
+
+
+def measure_gauge_block(
+    points: np.ndarray,
+    nominal_height: float,
+    *,
+    edge_margin_mm: float = 1.0,
+    band_mm: float = 0.2,
+    up: np.ndarray | None = None,
+    seed: int = 0,
+    frame: np.ndarray | None = None,
+    min_frame_points: int = 20,
+) -> GaugeResult:
+    """Height of a gauge block on a surface plate: every top-face point against the plate plane.
+
+    1. RANSAC finds the dominant plane; the other face is the densest layer of points near
+       ``±nominal_height`` from it (a height histogram), refined by RANSAC within it.
+    2. The lower of the two (along ``up``, the direction towards the scanner, if given;
+       otherwise the face with the larger footprint) is the plate.
+    3. Top-face points closer than ``edge_margin_mm`` to the face's outline (convex hull) and
+       plate points closer than that to the block's footprint are left out: there the stripe
+       runs over the edge and mixes the two levels.
+    4. The plate plane is fitted by least squares to the remaining plate points; the height
+       of each remaining top point is its distance to that plane.
+
+    ``band_mm`` is the half-width of the layer that counts as a face.
+
+    With ``frame`` (the frame of each point), every height is referenced to the plate *as
+    seen in the same frame*: the mean offset of that frame's plate points from the plate plane
+    is subtracted from its top points' heights (frames with fewer than ``min_frame_points``
+    plate points are left out). The stripe crosses plate and top face in one exposure, so the
+    arm's pose error of that frame, common to both, cancels: what a line profiler does for a
+    step height. The paper's plane-referenced heights are kept in ``heights_plane``.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    if len(p) < 2 * MIN_POINTS:
+        raise ValueError(f"measure_gauge_block needs at least {2 * MIN_POINTS} points, got {len(p)}")
+    up = None if up is None else np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
+    n1, d1, in1 = ransac_plane(p, band_mm, seed=seed)
+    h = p @ n1 + d1
+    window = max(0.25 * nominal_height, 5 * band_mm)
+    best: tuple[int, float] | None = None
+    for sign in (1.0, -1.0):
+        sel = np.abs(h - sign * nominal_height) < window
+        if sel.sum() < MIN_POINTS:
+            continue
+        # the densest band_mm-wide layer in the window: histogram of heights
+        edges = np.arange(sign * nominal_height - window, sign * nominal_height + window + band_mm,
+                          band_mm)
+        counts, _ = np.histogram(h[sel], bins=edges)
+        k = int(np.argmax(counts))
+        if best is None or counts[k] > best[0]:
+            best = (int(counts[k]), float((edges[k] + edges[k + 1]) / 2))
+    if best is None or best[0] < MIN_POINTS:
+        raise ValueError(
+            f"measure_gauge_block: found one face but no second face {nominal_height:g} mm "
+            f"(± {window:g} mm) from it"
+        )
+    layer = np.abs(h - best[1]) < 2 * band_mm
+    _, _, in2l = ransac_plane(p[layer], band_mm, seed=seed + 1)
+    in2 = np.zeros(len(p), dtype=bool)
+    in2[np.flatnonzero(layer)[in2l]] = True
+    in1 &= ~in2
+
+    basis = plane_basis(n1)
+    hull1 = _hull(p[in1] @ basis.T)
+    hull2 = _hull(p[in2] @ basis.T)
+    if hull1 is None or hull2 is None:
+        raise ValueError("measure_gauge_block: a face's points are degenerate (collinear)")
+    if up is not None:
+        # the face farther along `up` is the top; plane 2 lies at signed height best[1] from plane 1
+        first_is_plate = (best[1] > 0) == (float(n1 @ up) > 0)
+    else:
+        first_is_plate = hull1.volume >= hull2.volume  # ConvexHull.volume is the area in 2-D
+    if first_is_plate:
+        plate_in, top_in, top_hull = in1, in2, hull2
+        plate_n, plate_d = fit_plane(p[in1])
+    else:
+        plate_in, top_in, top_hull = in2, in1, hull1
+        plate_n, plate_d = fit_plane(p[in2])
+    # orient the plate normal towards the top face
+    if float(np.median(p[top_in] @ plate_n + plate_d)) < 0:
+        plate_n, plate_d = -plate_n, -plate_d
+
+    # top outline in the plate's own coordinates, so both faces share one footprint
+    basis = plane_basis(plate_n)
+    top_xy = p[top_in] @ basis.T
+    top_hull = _hull(top_xy)
+    if top_hull is None:
+        raise ValueError("measure_gauge_block: the top face's points are collinear")
+    eq = _edges(top_hull)
+    top_mask = np.zeros(len(p), dtype=bool)
+    top_mask[np.flatnonzero(top_in)[_hull_signed_distance(eq, top_xy) <= -edge_margin_mm]] = True
+    plate_idx = np.flatnonzero(plate_in)
+    plate_mask = np.zeros(len(p), dtype=bool)
+    plate_mask[plate_idx[_hull_signed_distance(eq, p[plate_idx] @ basis.T) >= edge_margin_mm]] = True
+    if top_mask.sum() < MIN_POINTS or plate_mask.sum() < MIN_POINTS:
+        raise ValueError(
+            f"measure_gauge_block: too few points away from the edges (top {int(top_mask.sum())}, "
+            f"plate {int(plate_mask.sum())}); is the edge margin of {edge_margin_mm} mm too wide?"
+        )
+    plate_n, plate_d = fit_plane(p[plate_mask])
+    if float(np.median(p[top_mask] @ plate_n + plate_d)) < 0:
+        plate_n, plate_d = -plate_n, -plate_d
+    heights = plane_distance(p[top_mask], plate_n, plate_d)
+    heights_plane = frame_offsets = None
+    reference = "plane"
+    if frame is not None:
+        frame = np.asarray(frame)
+        ufr, inv = np.unique(frame[plate_mask], return_inverse=True)
+        res = plane_distance(p[plate_mask], plate_n, plate_d)
+        count = np.bincount(inv, minlength=ufr.size)
+        offset = np.bincount(inv, weights=res, minlength=ufr.size) / np.maximum(count, 1)
+        ufr, offset = ufr[count >= min_frame_points], offset[count >= min_frame_points]
+        top_idx = np.flatnonzero(top_mask)
+        k = np.zeros(top_idx.size, dtype=np.int64)
+        seen = np.zeros(top_idx.size, dtype=bool)
+        if ufr.size:
+            k = np.clip(np.searchsorted(ufr, frame[top_idx]), 0, ufr.size - 1)
+            seen = ufr[k] == frame[top_idx]
+        if seen.sum() < MIN_POINTS:
+            raise ValueError(
+                f"measure_gauge_block: only {int(seen.sum())} top points lie in frames that also "
+                f"see at least {min_frame_points} plate points; cannot reference per frame"
+            )
+        top_mask = np.zeros(len(p), dtype=bool)
+        top_mask[top_idx[seen]] = True
+        heights_plane = heights[seen]
+        heights = heights_plane - offset[k[seen]]
+        frame_offsets = offset
+        reference = "frame"
+    top_n, top_d = fit_plane(p[top_mask])
+    if float(top_n @ plate_n) < 0:
+        top_n, top_d = -top_n, -top_d
+
+    # central length and variation: the top LSQ plane over the usable top outline
+    basis = plane_basis(plate_n)
+    inner_xy = p[top_mask] @ basis.T
+    inner_hull = _hull(inner_xy)
+    verts = inner_xy[inner_hull.vertices] if inner_hull is not None else inner_xy
+    ctr = _polygon_centroid(verts)
+
+    def top_height_at(xy: np.ndarray) -> np.ndarray:
+        # point on the top plane above plate coordinates xy (along the plate normal)
+        base = xy @ basis - plate_d * plate_n
+        t = -(base @ top_n + top_d) / float(plate_n @ top_n)
+        return t
+
+    central = float(top_height_at(ctr[None])[0])
+    corner_h = top_height_at(verts)
+    return GaugeResult(
+        nominal_mm=float(nominal_height),
+        plate_normal=plate_n,
+        plate_d=float(plate_d),
+        top_normal=top_n,
+        top_d=float(top_d),
+        heights=heights,
+        top_mask=top_mask,
+        plate_mask=plate_mask,
+        plate_residuals=plane_distance(p[plate_mask], plate_n, plate_d),
+        central_length_mm=central,
+        length_variation_mm=float(corner_h.max() - corner_h.min()),
+        edge_margin_mm=float(edge_margin_mm),
+        reference=reference,
+        heights_plane=heights_plane,
+        frame_offsets=frame_offsets,
+    )
+
+
+# ----------------------------------------------------------------------------- sphere
+
+
+@dataclass(frozen=True)
+class SphereResult:
+    """Least-squares sphere of a reference ball (ISO 10360-8 PSize / PForm in spirit)."""
+
+    nominal_diameter_mm: float
+    centre: np.ndarray
+    radius: float
+    residuals: np.ndarray  # (n_inliers,) radial: distance to centre minus radius
+    inlier_mask: np.ndarray  # (N,)
+
+    def figures(self) -> dict[str, Any]:
+        """Diameter, size error, form error (all points; 95 % closest; 99.7 % closest, as
+        VDI/VDE 2634-2 allows discarding up to 0.3 %; 2.5-97.5 %), RMS."""
+        r = self.residuals
+        order = np.sort(np.abs(r))
+        keep = order[: max(1, int(np.floor(0.95 * r.size)))]
+        r95 = r[np.abs(r) <= keep[-1]]
+        r997 = r[np.abs(r) <= order[max(0, r.size - 1 - int(np.floor(0.003 * r.size)))]]
+        lo, hi = np.percentile(r, [2.5, 97.5])
+        d = 2 * self.radius
+        return {
+            "nominal_diameter_mm": self.nominal_diameter_mm,
+            "n": int(r.size),
+            "n_total": int(self.inlier_mask.size),
+            "centre_mm": self.centre.tolist(),
+            "diameter_mm": d,
+            "size_error_mm": d - self.nominal_diameter_mm,
+            "form_error_mm": float(r.max() - r.min()),
+            "form_error_d95_mm": float(r95.max() - r95.min()),
+            "form_error_vdi_mm": float(r997.max() - r997.min()),
+            "form_error_p95_mm": float(hi - lo),
+            "rms_mm": float(np.sqrt(np.mean(r**2))),
+        }
+
+
+def measure_sphere(
+    points: np.ndarray,
+    nominal_diameter: float,
+    *,
+    ransac_threshold_mm: float = 0.2,
+    trim_sigma: float = 5.0,
+    min_band_mm: float = 0.002,
+    seed: int = 0,
+) -> SphereResult:
+    """Least-squares sphere of a ball among other points (its stem, the plate under it).
+
+    RANSAC with the nominal radius finds the ball; the least-squares sphere (geometric,
+    ``fit_sphere``) is then fitted to its inliers and the inliers re-selected at
+    ``trim_sigma`` robust sigmas (at least ``min_band_mm``), until they settle.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    radius = nominal_diameter / 2
+    centre, inl = ransac_sphere(p, radius, ransac_threshold_mm, seed=seed)
+    if inl.sum() < MIN_POINTS:
+        raise ValueError(f"measure_sphere: only {int(inl.sum())} points lie on the ball")
+    r = radius
+    for _ in range(3):
+        centre, r, res = fit_sphere(p[inl])
+        band = max(trim_sigma * robust_sigma(res), min_band_mm)
+        new = np.abs(np.linalg.norm(p - centre, axis=1) - r) < band
+        if np.array_equal(new, inl) or new.sum() < MIN_POINTS:
+            break
+        inl = new
+    centre, r, res = fit_sphere(p[inl])
+    return SphereResult(float(nominal_diameter), centre, float(r), res, inl)
+
+
+def sphere_by_incidence(
+    points: np.ndarray, sphere: SphereResult, viewpoints: np.ndarray, *,
+    band_deg: float = 10.0, max_incidence_deg: float = 60.0,
+) -> dict[str, Any]:
+    """Radial residuals of a sphere fit by angle of incidence, and the size from the steep part.
+
+    The angle of incidence of a point is between the sphere's normal there and the direction
+    to the camera that saw it (``viewpoints`` (N, 3), base frame). Near grazing incidence a
+    stripe is wide and faint and its centre can be biased; the bands show whether it is, and
+    the diameter fitted to the points seen within ``max_incidence_deg`` shows how much that
+    moves the size.
+    """
+    p = np.asarray(points, dtype=np.float64)[sphere.inlier_mask]
+    v = np.asarray(viewpoints, dtype=np.float64)[sphere.inlier_mask] - p
+    r = p - sphere.centre
+    cosang = np.sum(r * v, axis=1) / (np.linalg.norm(r, axis=1) * np.linalg.norm(v, axis=1))
+    inc = np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0)))
+    res = sphere.residuals
+    bands = []
+    for lo in np.arange(0.0, 90.0, band_deg):
+        m = (inc >= lo) & (inc < lo + band_deg)
+        if m.sum() >= MIN_POINTS:
+            bands.append({"from_deg": float(lo), "to_deg": float(lo + band_deg), "n": int(m.sum()),
+                          "mean_residual_mm": float(res[m].mean()),
+                          "std_residual_mm": float(res[m].std(ddof=1))})
+    out: dict[str, Any] = {"bands": bands, "max_incidence_deg": float(max_incidence_deg)}
+    steep = inc <= max_incidence_deg
+    if steep.sum() >= MIN_POINTS:
+        _, rad, _ = fit_sphere(p[steep])
+        out["n_steep"] = int(steep.sum())
+        out["size_error_steep_mm"] = 2 * rad - sphere.nominal_diameter_mm
+    return out
