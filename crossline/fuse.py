@@ -492,51 +492,63 @@ def read_ply(path: str | Path) -> dict[str, np.ndarray]:
     property present (as 1-D arrays). Raises ValueError for other PLY flavours.
     """
     path = Path(path)
-    data = path.read_bytes()
-    end = data.find(b"end_header\n")
-    if not data.startswith(b"ply\n") or end < 0:
-        raise ValueError(f"{path}: not a PLY file")
-    lines = data[:end].decode("ascii", "replace").splitlines()
-    if "format binary_little_endian 1.0" not in lines:
-        raise ValueError(f"{path}: only binary little-endian PLY is read here")
-    fields: list[tuple[str, str]] = []
-    n = 0
-    element = None
-    for ln in lines:
-        parts = ln.split()
-        if parts[:1] == ["element"]:
-            element = parts[1] if len(parts) > 1 else ""
-            if element == "vertex":
-                if len(parts) != 3 or not parts[2].isdigit():
-                    raise ValueError(f"{path}: header line {ln!r}: expected 'element vertex <count>'")
-                n = int(parts[2])
-            elif fields:
-                break  # vertices come first; later elements (faces) are not read
-        elif parts[:1] == ["property"] and element == "vertex":
-            if len(parts) > 1 and parts[1] == "list":
-                raise ValueError(f"{path}: list properties on vertices are not supported")
-            if len(parts) != 3 or parts[1] not in _PLY_DTYPES:
-                raise ValueError(f"{path}: header line {ln!r}: expected 'property <type> <name>' with "
-                                 f"a type among {sorted(_PLY_DTYPES)}")
-            fields.append((parts[2], _PLY_DTYPES[parts[1]]))
-    missing = [k for k in ("x", "y", "z") if k not in [f for f, _ in fields]]
-    if missing:
-        raise ValueError(f"{path}: the vertices have no {', '.join(missing)} property")
-    start = end + len(b"end_header\n")
-    size = np.dtype(fields).itemsize
-    if len(data) - start < n * size:
-        raise ValueError(f"{path}: truncated: the header declares {n} vertices of {size} bytes, the "
-                         f"file holds {(len(data) - start) // size} of them")
-    arr = np.frombuffer(data, dtype=np.dtype(fields), count=n, offset=start)
-    out: dict[str, np.ndarray] = {
-        "points": np.column_stack([arr[k].astype(np.float64) for k in ("x", "y", "z")])
-    }
-    names = [f for f, _ in fields]
-    if all(k in names for k in ("nx", "ny", "nz")):
-        out["normals"] = np.column_stack([arr[k].astype(np.float64) for k in ("nx", "ny", "nz")])
-    for k in names:
-        if k not in ("x", "y", "z", "nx", "ny", "nz"):
-            out[k] = arr[k].copy()
+    with open(path, "rb") as f:
+        head = f.read(1 << 16)  # the header: a few hundred bytes
+        end = head.find(b"end_header\n")
+        if not head.startswith(b"ply\n") or end < 0:
+            raise ValueError(f"{path}: not a PLY file")
+        lines = head[:end].decode("ascii", "replace").splitlines()
+        if "format binary_little_endian 1.0" not in lines:
+            raise ValueError(f"{path}: only binary little-endian PLY is read here")
+        fields: list[tuple[str, str]] = []
+        n = 0
+        element = None
+        for ln in lines:
+            parts = ln.split()
+            if parts[:1] == ["element"]:
+                element = parts[1] if len(parts) > 1 else ""
+                if element == "vertex":
+                    if len(parts) != 3 or not parts[2].isdigit():
+                        raise ValueError(f"{path}: header line {ln!r}: expected 'element vertex <count>'")
+                    n = int(parts[2])
+                elif fields:
+                    break  # vertices come first; later elements (faces) are not read
+            elif parts[:1] == ["property"] and element == "vertex":
+                if len(parts) > 1 and parts[1] == "list":
+                    raise ValueError(f"{path}: list properties on vertices are not supported")
+                if len(parts) != 3 or parts[1] not in _PLY_DTYPES:
+                    raise ValueError(f"{path}: header line {ln!r}: expected 'property <type> <name>' "
+                                     f"with a type among {sorted(_PLY_DTYPES)}")
+                fields.append((parts[2], _PLY_DTYPES[parts[1]]))
+        missing = [k for k in ("x", "y", "z") if k not in [f for f, _ in fields]]
+        if missing:
+            raise ValueError(f"{path}: the vertices have no {', '.join(missing)} property")
+        start = end + len(b"end_header\n")
+        dt = np.dtype(fields)
+        held = (path.stat().st_size - start) // dt.itemsize
+        if held < n:
+            raise ValueError(f"{path}: truncated: the header declares {n} vertices of {dt.itemsize} "
+                             f"bytes, the file holds {held} of them")
+        names = [f for f, _ in fields]
+        normals = all(k in names for k in ("nx", "ny", "nz"))
+        out: dict[str, np.ndarray] = {"points": np.empty((n, 3))}
+        if normals:
+            out["normals"] = np.empty((n, 3))
+        rest = [k for k in names if k not in ("x", "y", "z", "nx", "ny", "nz")]
+        for k in rest:
+            out[k] = np.empty(n, dtype=dt[k])
+        # a block of rows at a time: the whole file in memory would be another 41 B a point
+        f.seek(start)
+        for a in range(0, n, _PLY_BLOCK):
+            rows = np.fromfile(f, dtype=dt, count=min(_PLY_BLOCK, n - a))
+            b = a + len(rows)
+            for i, k in enumerate(("x", "y", "z")):
+                out["points"][a:b, i] = rows[k]
+            if normals:
+                for i, k in enumerate(("nx", "ny", "nz")):
+                    out["normals"][a:b, i] = rows[k]
+            for k in rest:
+                out[k][a:b] = rows[k]
     return out
 
 
