@@ -7,8 +7,10 @@ last), so an interrupted run never leaves a folder that looks complete.
 
 Module map: ``presets`` (the rigs and every number), ``optics`` (rays through the distortion,
 sensor chain, speckle), ``scene`` (analytic primitives), ``scenes`` (artefacts and board),
-``texture`` (board patterns), ``sheet`` (laser irradiance), ``render`` (images and the true
-stripe), ``arm`` (trajectories and pose noise), ``views`` (calibration poses), ``part`` (the
+``texture`` (board patterns), ``sheet`` (laser irradiance), ``render`` (an image from its
+parts: ``rig_model``, the rig's camera, lasers, sensor and light; ``ambient``, board views and
+faint ambient light; ``stripe``, the band and the true stripe; ``band``, laser light in the
+band), ``arm`` (trajectories and pose noise), ``views`` (calibration poses), ``part`` (the
 freeform's truth mesh), ``capture`` (this package's writer, in ``simulate``), ``truth`` (the true
 calibration written as the stages' artefacts, to score later stages alone), ``random_rig`` (whole
 rigs drawn from a seed: ``simulate(out, "random", seed)``), ``colour`` (a Bayer colour sensor).
