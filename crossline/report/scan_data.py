@@ -1,0 +1,161 @@
+"""A scan's data as the report reads it: the points, the fused cloud and the frames.
+
+``ScanData`` holds what the report knows about one scan; ``_load_scan`` fills it from the
+capture's ``frames.csv``, the triangulated points (``points/<scan>.parquet`` and its side
+file) and the fused cloud (``<scan>.ply``, else the points themselves), noting every file it
+read for the provenance; ``points_per_frame`` counts the points of each frame by laser state;
+``_read_json`` reads a JSON input, None when it is missing or broken. Split from
+``crossline.report.accuracy`` (issue 21.3), which re-exports the names its importers use.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["ScanData", "points_per_frame"]
+
+# the report stage's logger, as before the split: its records keep their name
+log = logging.getLogger("crossline.report.accuracy")
+
+
+def _read_json(path: Path) -> dict | None:
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as exc:
+        log.warning("%s: unreadable (%s); its section is left out", path, exc)
+        return None
+    return data if isinstance(data, dict) else None
+
+
+@dataclass
+class ScanData:
+    """What the report knows about one scan (arrays for plots included)."""
+
+    name: str
+    artefact: str
+    nominal: dict[str, float]
+    states: np.ndarray | None = None  # laser state per frame, in frame order
+    frame_ids: np.ndarray | None = None
+    point_frames: np.ndarray | None = None  # frame of each triangulated point
+    point_lasers: np.ndarray | None = None
+    cloud: dict[str, np.ndarray] | None = None  # points, normals, laser (codes), frame
+    cloud_source: str = ""
+    fuse_stats: dict | None = None
+    points_path: Path | None = None
+    points_info: dict | None = None
+    mesh: str | None = None  # a freeform's nominal mesh, relative to the capture
+    T_base_nominal: np.ndarray | None = None  # its placement as rig.yaml gives it (a datum)
+    plots: dict[str, Any] = field(default_factory=dict)
+
+
+def points_per_frame(
+    frame_ids: np.ndarray, states: np.ndarray, point_frames: np.ndarray
+) -> dict[str, Any]:
+    """Points per frame, by laser state, and the gain of the cross-line over a single line.
+
+    The gain is the mean number of points per frame over all frames of the scan (every
+    frame costs the same time) divided by the mean per single-laser frame (A or B): the
+    paper's 4/3 for the pattern A, B, AB when each stripe gives the same number of points.
+    """
+    frame_ids = np.asarray(frame_ids, dtype=np.int64)
+    states = np.asarray(states).astype(str)
+    order = np.argsort(frame_ids, kind="stable")
+    frame_ids, states = frame_ids[order], states[order]
+    point_frames = np.asarray(point_frames, dtype=np.int64)
+    if len(frame_ids):
+        pos = np.clip(np.searchsorted(frame_ids, point_frames), 0, len(frame_ids) - 1)
+        known = frame_ids[pos] == point_frames
+    else:
+        pos = np.zeros(len(point_frames), dtype=np.int64)
+        known = np.zeros(len(point_frames), dtype=bool)
+    counts = np.bincount(pos[known], minlength=len(frame_ids)).astype(np.int64)
+    by_state = {}
+    for s in ("A", "B", "AB", "off"):
+        m = states == s
+        if m.any():
+            by_state[s] = {"frames": int(m.sum()), "points": int(counts[m].sum()),
+                           "points_per_frame": float(counts[m].mean())}
+    single = (states == "A") | (states == "B")
+    n = len(frame_ids)
+    out: dict[str, Any] = {
+        "frames": n,
+        "points": int(counts.sum()),
+        "points_outside_frames": int((~known).sum()),
+        "points_per_frame": float(counts.sum() / n) if n else None,
+        "by_state": by_state,
+        "points_per_single_laser_frame": float(counts[single].mean()) if single.any() else None,
+    }
+    ppf, ps = out["points_per_frame"], out["points_per_single_laser_frame"]
+    out["gain_over_single_line"] = ppf / ps if ppf is not None and ps else None
+    out["_counts"] = counts  # for the plot; removed before JSON
+    return out
+
+
+def _load_scan(
+    name: str, spec: Any, root: Path, interim: Path, processed: Path, files: list
+) -> ScanData:
+    import pandas as pd
+
+    from crossline.fuse import read_ply
+
+    sd = ScanData(name, spec.artefact, dict(spec.nominal), mesh=getattr(spec, "mesh", None),
+                  T_base_nominal=getattr(spec, "T_base_nominal", None))
+    if sd.mesh and (root / sd.mesh).is_file():
+        files.append(("capture", sd.mesh, root / sd.mesh))
+    fcsv = root / "scans" / name / "frames.csv"
+    if fcsv.is_file():
+        files.append(("capture", f"scans/{name}/frames.csv", fcsv))
+        try:
+            fr = pd.read_csv(fcsv, usecols=["frame", "lasers"], dtype={"lasers": str},
+                             keep_default_na=False)
+            sd.frame_ids = fr["frame"].to_numpy(np.int64)
+            sd.states = fr["lasers"].str.strip().to_numpy(str)
+        except (ValueError, KeyError) as exc:
+            log.warning("%s: unreadable (%s)", fcsv, exc)
+    pq = interim / "points" / f"{name}.parquet"
+    if pq.is_file():
+        sd.points_path = pq
+        files.append(("interim", f"points/{name}.parquet", pq))
+        try:
+            df = pd.read_parquet(pq, columns=["frame", "laser"])
+            sd.point_frames = df["frame"].to_numpy(np.int64)
+            lab = df["laser"].astype(str)
+            sd.point_lasers = np.select([lab == "A", lab == "B"], [1, 2], 0).astype(np.uint8)
+        except Exception as exc:  # pyarrow raises several types for broken files
+            log.warning("%s: unreadable (%s)", pq, exc)
+    side = interim / "points" / f"{name}.json"
+    if side.is_file():
+        files.append(("interim", f"points/{name}.json", side))
+        sd.points_info = _read_json(side)
+    ply = processed / f"{name}.ply"
+    if ply.is_file():
+        files.append(("processed", f"{name}.ply", ply))
+        try:
+            sd.cloud = read_ply(ply)
+            sd.cloud_source = f"{name}.ply"
+        except (ValueError, KeyError, OSError) as exc:
+            log.warning("%s: unreadable (%s)", ply, exc)
+    if sd.cloud is None and pq.is_file():
+        try:
+            df = pd.read_parquet(pq, columns=["x", "y", "z", "laser", "frame"])
+            codes = np.select([df["laser"].astype(str) == "A", df["laser"].astype(str) == "B"],
+                              [1, 2], 0).astype(np.uint8)
+            sd.cloud = {"points": df[["x", "y", "z"]].to_numpy(np.float64), "laser": codes,
+                        "frame": df["frame"].to_numpy(np.int64)}
+            sd.cloud_source = f"points/{name}.parquet (no fused cloud)"
+        except Exception as exc:
+            log.warning("%s: no usable points (%s)", pq, exc)
+    for cand in (processed / f"{name}.fuse.json", processed / f"{name}.json"):
+        if cand.is_file():
+            files.append(("processed", cand.name, cand))
+            sd.fuse_stats = _read_json(cand)
+            break
+    return sd

@@ -1,0 +1,187 @@
+"""A scan's figures against the simulator's truth, for the report's validation part.
+
+``_label_truth`` (wrong A/B labels against the true centre lines), ``_speckle_limit`` (the
+speckle bound on a stripe's centre against the centres' achieved sigma), ``_gauge_truth``
+and ``_plane4`` (a gauge block against its true planes), ``read_mesh`` and
+``_mesh_deviation`` (a freeform's points against its true mesh). Split from
+``crossline.report.accuracy`` (issue 21.3), which re-exports the names its importers use.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["read_mesh"]
+
+# the report stage's logger, as before the split: its records keep their name
+log = logging.getLogger("crossline.report.accuracy")
+
+
+def _label_truth(points: Path, centrelines: Path, files: list) -> dict[str, Any] | None:
+    """Wrong A/B labels of the AB-frame points against the simulator's true centre lines."""
+    import pandas as pd
+
+    from crossline.report import metrics as mt
+
+    if not centrelines.is_file():
+        return None
+    files.append(("capture", f"truth/{centrelines.name}", centrelines))
+    try:
+        p = pd.read_parquet(points, columns=["frame", "laser", "lasers", "u", "v"])
+        t = pd.read_parquet(centrelines, columns=["frame", "laser", "u", "v", "visible"])
+    except Exception as exc:  # pyarrow raises several types for broken files
+        log.warning("label validation skipped: %s", exc)
+        return None
+    p = p[p["lasers"] == "AB"]
+    t = t[t["visible"]]
+    return mt.label_errors(p["frame"].to_numpy(), p["laser"].to_numpy(), p["u"].to_numpy(),
+                           p["v"].to_numpy(), t["frame"].to_numpy(), t["laser"].to_numpy(),
+                           t["u"].to_numpy(), t["v"].to_numpy())
+
+
+def _speckle_limit(centre: dict, truth: dict, points: Path,
+                   smooth_px: int | None = None) -> dict[str, Any] | None:
+    """Per laser: the speckle bound on one profile's centre (px, :mod:`crossline.report.speckle`,
+    from the rig's optics in truth.json), the same after the centre lines' smoothing
+    (``smooth_px`` columns, as if the columns' speckle were independent: the lower end), the
+    centres' achieved robust sigma against the true lines, and its ratio to each."""
+    import pandas as pd
+
+    from crossline.report.speckle import centre_bound_px, smoothing_gain
+
+    sensor, cam = truth.get("sensor") or {}, truth.get("camera") or {}
+    pitch, fno = sensor.get("pixel_pitch_um"), sensor.get("f_number")
+    if not (pitch and fno and cam.get("K") and centre):
+        return None
+    try:
+        z = pd.read_parquet(points, columns=["laser", "z_cam"])
+    except Exception:  # an older points file without camera coordinates
+        return None
+    fx = float(cam["K"][0][0])
+    out: dict[str, Any] = {}
+    for name, ce in centre.items():
+        las = (truth.get("lasers") or {}).get(name) or {}
+        zl = z["z_cam"][z["laser"] == name].to_numpy(np.float64)
+        if not (las.get("speckle_contrast") is not None and las.get("wavelength_nm") and zl.size):
+            continue
+        # magnification at the points' median depth: f / z, f = fx * pitch
+        m = fx * float(pitch) * 1e-3 / float(np.median(zl))
+        b = centre_bound_px(float(las["speckle_contrast"]), float(las["wavelength_nm"]),
+                            float(fno), float(pitch), m)
+        gain = smoothing_gain(int(smooth_px)) if smooth_px else 1.0
+        out[name] = {"bound_px": b, "achieved_sigma_px": ce["sigma_px"],
+                     "ratio": ce["sigma_px"] / b if b > 0 else None,
+                     "smooth_px": smooth_px, "bound_smoothed_px": b * gain,
+                     "ratio_smoothed": ce["sigma_px"] / (b * gain) if b > 0 else None,
+                     "contrast": float(las["speckle_contrast"]),
+                     "wavelength_nm": float(las["wavelength_nm"]), "f_number": float(fno),
+                     "pixel_um": float(pitch), "magnification": m}
+    return out or None
+
+
+def _plane4(v: list, like: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    n = np.asarray(v[:3], dtype=np.float64)
+    s = np.linalg.norm(n)
+    n, d = n / s, float(v[3]) / s
+    if like is not None and float(n @ like) < 0:
+        n, d = -n, -d
+    return n, d
+
+
+def _gauge_truth(g: Any, P: np.ndarray, tscan: dict, nominal: float) -> dict[str, Any]:
+    from crossline.report import metrics as mt
+
+    t: dict[str, Any] = {"true_height_mm": float(tscan.get("height", nominal))}
+    f = g.figures()
+    t["mean_error_mm"] = f["mean_mm"] - t["true_height_mm"]
+    t["central_length_error_mm"] = f["central_length_mm"] - t["true_height_mm"]
+    if "plate_plane_base" in tscan:
+        nt, dt = _plane4(tscan["plate_plane_base"], g.plate_normal)
+        h = P[g.top_mask] @ nt + dt
+        t["heights_over_true_plate"] = {"mean_mm": float(h.mean()),
+                                        "std_mm": float(h.std(ddof=1)) if h.size > 1 else 0.0,
+                                        "error_mm": float(h.mean()) - t["true_height_mm"]}
+        dev = P[g.plate_mask] @ nt + dt
+        t["plate_points_to_true_plate"] = mt.deviation_stats(dev)
+        t["plate_normal_angle_deg"] = float(np.degrees(mt.angle_between(nt, g.plate_normal)))
+    if "top_plane_base" in tscan:
+        nt, dt = _plane4(tscan["top_plane_base"], g.plate_normal)
+        t["top_points_to_true_top"] = mt.deviation_stats(P[g.top_mask] @ nt + dt)
+    return t
+
+
+def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (float64) and triangles of a PLY mesh.
+
+    Binary little-endian PLYs with ``double``/``float`` x, y, z and ``list uchar int``
+    triangles (as the simulator writes them) are read exactly here; anything else through
+    Open3D.
+    """
+    data = path.read_bytes()
+    end = data.find(b"end_header\n")
+    head = data[:end].decode("ascii", "replace").splitlines() if end > 0 else []
+    if "format binary_little_endian 1.0" in head:
+        nv = nf = 0
+        vprops: list[tuple[str, str]] = []
+        flist = None
+        element = None
+        types = {"double": "<f8", "float": "<f4", "float64": "<f8", "float32": "<f4",
+                 "uchar": "u1", "uint8": "u1", "int": "<i4", "int32": "<i4", "uint": "<u4",
+                 "uint32": "<u4"}
+        ok = True
+        for ln in head:
+            w = ln.split()
+            if w[:1] == ["element"]:
+                element = w[1]
+                if element == "vertex":
+                    nv = int(w[2])
+                elif element == "face":
+                    nf = int(w[2])
+                else:
+                    ok = False
+            elif w[:1] == ["property"] and element == "vertex":
+                ok &= w[1] in types
+                vprops.append((w[-1], types.get(w[1], "u1")))
+            elif w[:2] == ["property", "list"] and element == "face":
+                flist = (types.get(w[2]), types.get(w[3]))
+        if ok and flist is not None and None not in flist and {"x", "y", "z"} <= {n for n, _ in vprops}:
+            off = end + len(b"end_header\n")
+            vt = np.dtype(vprops)
+            V = np.frombuffer(data, vt, nv, off)
+            ft = np.dtype([("n", flist[0]), ("i", flist[1], (3,))])
+            F = np.frombuffer(data, ft, nf, off + nv * vt.itemsize)
+            if (F["n"] == 3).all():
+                return (np.column_stack([V[k].astype(np.float64) for k in "xyz"]),
+                        F["i"].astype(np.int64))
+    import open3d as o3d
+
+    mesh = o3d.io.read_triangle_mesh(str(path))
+    return np.asarray(mesh.vertices).copy(), np.asarray(mesh.triangles).copy()
+
+
+def _mesh_deviation(P: np.ndarray, path: Path, files: list,
+                    towards: np.ndarray | None = None) -> np.ndarray | None:
+    """Signed distance of the points to the true mesh, positive outside (towards the scanner)."""
+    from crossline.report.metrics import mesh_signed_distance
+
+    if not path.is_file():
+        log.warning("%s: the true mesh is missing; no freeform validation", path)
+        return None
+    files.append(("capture", str(path.name if path.parent.name != "truth" else
+                                 f"truth/{path.name}"), path))
+    V, F = read_mesh(path)
+    if len(F) == 0:
+        log.warning("%s: the true mesh has no triangles", path)
+        return None
+    dev = mesh_signed_distance(P, V, F)
+    if towards is not None:
+        # the scanner sees the outside: if the triangles' area-weighted normal points away
+        # from it, the mesh is wound inwards and the sign is flipped
+        a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+        if float(np.cross(b - a, c - a).sum(0) @ towards) < 0:
+            dev = -dev
+    return dev
