@@ -7,8 +7,13 @@ therefore averages the points of each laser separately, never mixing the two.
 Normals are oriented towards the camera that saw the point. The camera's position in the
 base frame is recovered per frame from the points themselves: each point is known in the
 camera frame and in the base frame, and one rigid motion (Kabsch) maps the first to the
-second, its translation being the camera centre. Frames whose points are collinear (a
-single stripe on a plane) borrow the centre of the nearest frame that has one.
+second, its translation being the camera centre (:mod:`crossline.camera_centres`). Frames
+whose points are collinear (a single stripe on a plane) borrow the centre of the nearest frame
+that has one.
+
+A long scan (tens of millions of points) is read column by column and row group by row group,
+and its per-point neighbourhood work (outlier test, normals) runs a slab at a time
+(:mod:`crossline.tiles`), with the answers of the whole cloud.
 
 Optionally (``refine_poses``) the arm's per-frame poses are first refined from the scan
 itself (:mod:`crossline.scan.refine`): where an A stripe crosses a B stripe of another frame the
@@ -18,8 +23,8 @@ corrections and what the solve saw go into the stats JSON under ``refine``.
 
 The PLY is binary little-endian with float64 coordinates (``x y z``, then ``nx ny nz`` as
 float32, ``laser`` as uchar 1 = A / 2 = B, ``frame`` as int32); Open3D and other readers
-read it as an ordinary point cloud with normals. It is written by this module rather than
-by Open3D so that its bytes depend only on the points (no timestamp, no library version).
+read it as an ordinary point cloud with normals (:mod:`crossline.io.ply`, which writes it so
+that its bytes depend only on the points).
 """
 
 from __future__ import annotations
@@ -33,8 +38,10 @@ from typing import Any
 
 import numpy as np
 
+from crossline.camera_centres import FrameMoments, camera_centres
 from crossline.errors import StageError
-from crossline.io.atomic import atomic_path, write_json
+from crossline.io.atomic import write_json
+from crossline.io.ply import read_ply, write_ply, write_stl
 from crossline.scan.refine import HALF_MM, MAX_WIDTH_RATIO, MIN_ANGLE_DEG, ArmPrior, usable_centres
 from crossline.tiles import slabs, statistical_inliers
 
@@ -77,102 +84,6 @@ class FusedCloud:
 
 
 # ----------------------------------------------------------------------------- geometry
-
-
-def camera_centres(
-    frame: np.ndarray, p_cam: np.ndarray, p_base: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Camera centre (base frame) per frame from points known in both frames.
-
-    Returns the sorted unique frames (F,) and their centres (F, 3); frames whose points are
-    too few or collinear get the centre of the nearest frame (by number) that has one. If no
-    frame has one, the centres are NaN.
-    """
-    frame = np.asarray(frame, dtype=np.int64)
-    frames, inv, counts = np.unique(frame, return_inverse=True, return_counts=True)
-    F = len(frames)
-    pc = np.asarray(p_cam, dtype=np.float64)
-    pb = np.asarray(p_base, dtype=np.float64)
-    def per_frame(w: np.ndarray) -> np.ndarray:
-        return np.bincount(inv, weights=w, minlength=F)
-
-    mc = np.stack([per_frame(pc[:, i]) for i in range(3)], 1) / counts[:, None]
-    mb = np.stack([per_frame(pb[:, i]) for i in range(3)], 1) / counts[:, None]
-    # one centred column at a time: a long scan's (N, 3) copies would cost 24 B a point each
-    qb = [pb[:, j] - mb[inv, j] for j in range(3)]
-    H = np.empty((F, 3, 3))
-    for i in range(3):
-        qc = pc[:, i] - mc[inv, i]
-        for j in range(3):
-            H[:, i, j] = per_frame(qc * qb[j])
-    del qb, qc
-    return frames, _kabsch_centres(frames, counts, mc, mb, H)
-
-
-def _kabsch_centres(frames: np.ndarray, counts: np.ndarray, mc: np.ndarray, mb: np.ndarray,
-                    H: np.ndarray) -> np.ndarray:
-    """Camera centres (F, 3) from each frame's point means in cam and base (F, 3) and their
-    centred cross-covariance H (F, 3, 3); see :func:`camera_centres`."""
-    F = len(frames)
-    U, s, Vt = np.linalg.svd(H)
-    ok = (counts >= 3) & (s[:, 1] > 1e-6 * np.maximum(s[:, 0], 1e-300))
-    D = np.ones((F, 3))
-    D[:, 2] = np.sign(np.linalg.det(np.swapaxes(Vt, 1, 2) @ np.swapaxes(U, 1, 2)))
-    R = np.swapaxes(Vt, 1, 2) @ (D[:, :, None] * np.swapaxes(U, 1, 2))
-    centres = mb - np.einsum("fij,fj->fi", R, mc)
-    if not ok.any():
-        return np.full((F, 3), np.nan)
-    good = np.flatnonzero(ok)
-    pos = np.searchsorted(frames[good], frames)
-    lo = good[np.clip(pos - 1, 0, len(good) - 1)]
-    hi = good[np.clip(pos, 0, len(good) - 1)]
-    nearest = np.where(np.abs(frames[hi] - frames) <= np.abs(frames - frames[lo]), hi, lo)
-    return centres[nearest]
-
-
-class FrameMoments:
-    """Per-frame means and centred cross-covariances of points known in cam and base,
-    gathered chunk by chunk, that give :func:`camera_centres` without holding the
-    camera-frame points (a long scan's (N, 3) array of them is 24 B a point). Each chunk's
-    moments are centred on its own frame means and chunks are merged by the parallel-axis
-    rule, so the result is the one-pass-over-all answer to rounding."""
-
-    def __init__(self) -> None:
-        self._parts: list[tuple[np.ndarray, ...]] = []
-
-    def add(self, frame: np.ndarray, p_cam: np.ndarray, p_base: np.ndarray) -> None:
-        """Take in one chunk of points: frames (n,), cam (n, 3), base (n, 3)."""
-        if len(frame) == 0:
-            return
-        frames, inv, counts = np.unique(np.asarray(frame, np.int64), return_inverse=True,
-                                        return_counts=True)
-        F = len(frames)
-        pc = np.asarray(p_cam, dtype=np.float64)
-        pb = np.asarray(p_base, dtype=np.float64)
-        mc = np.stack([np.bincount(inv, pc[:, i], F) for i in range(3)], 1) / counts[:, None]
-        mb = np.stack([np.bincount(inv, pb[:, i], F) for i in range(3)], 1) / counts[:, None]
-        qc, qb = pc - mc[inv], pb - mb[inv]
-        H = np.stack([np.stack([np.bincount(inv, qc[:, i] * qb[:, j], F) for j in range(3)], 1)
-                      for i in range(3)], 1)
-        self._parts.append((frames, counts, mc, mb, H))
-
-    def centres(self) -> tuple[np.ndarray, np.ndarray]:
-        """Sorted frames (F,) and camera centres (F, 3) in the base frame, as
-        :func:`camera_centres` gives them."""
-        if not self._parts:
-            return np.zeros(0, np.int64), np.zeros((0, 3))
-        fr, cnt, mc, mb, H = (np.concatenate(a) for a in zip(*self._parts, strict=True))
-        frames, inv = np.unique(fr, return_inverse=True)
-        F = len(frames)
-        counts = np.bincount(inv, cnt, F)
-        Mc = np.stack([np.bincount(inv, cnt * mc[:, i], F) for i in range(3)], 1) / counts[:, None]
-        Mb = np.stack([np.bincount(inv, cnt * mb[:, i], F) for i in range(3)], 1) / counts[:, None]
-        dc, db = mc - Mc[inv], mb - Mb[inv]
-        HH = np.empty((F, 3, 3))
-        for i in range(3):
-            for j in range(3):
-                HH[:, i, j] = np.bincount(inv, H[:, i, j] + cnt * dc[:, i] * db[:, j], F)
-        return frames, _kabsch_centres(frames, counts.round().astype(np.int64), Mc, Mb, HH)
 
 
 def estimate_normals(
@@ -444,130 +355,6 @@ def _by_laser(codes: np.ndarray) -> dict[str, int]:
     if c[0]:
         out["unknown"] = int(c[0])
     return out
-
-
-# ----------------------------------------------------------------------------- files
-
-
-_PLY_FIELDS = [("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("nx", "<f4"), ("ny", "<f4"),
-               ("nz", "<f4"), ("laser", "u1"), ("frame", "<i4")]
-_PLY_TYPES = {"<f8": "double", "<f4": "float", "u1": "uchar", "<i4": "int"}
-_PLY_DTYPES = {"double": "<f8", "float64": "<f8", "float": "<f4", "float32": "<f4",
-               "uchar": "u1", "uint8": "u1", "char": "i1", "int8": "i1", "int": "<i4",
-               "int32": "<i4", "uint": "<u4", "uint32": "<u4", "short": "<i2", "int16": "<i2",
-               "ushort": "<u2", "uint16": "<u2"}
-_PLY_BLOCK = 1 << 20  # vertex rows written at a time
-
-
-def write_ply(path: str | Path, cloud: FusedCloud) -> None:
-    """Write the cloud as binary little-endian PLY, atomically; same cloud, same bytes."""
-    n = len(cloud.points)
-    header = [
-        "ply",
-        "format binary_little_endian 1.0",
-        "comment crossline fused cloud: base frame, mm",
-        "comment laser: 1 = A, 2 = B, 0 = unknown; frame: first frame of the point",
-        f"element vertex {n}",
-        *(f"property {_PLY_TYPES[t]} {n}" for n, t in _PLY_FIELDS),
-        "end_header",
-    ]
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        f.write(("\n".join(header) + "\n").encode("ascii"))
-        # a block of rows at a time: the whole vertex table would be another 41 B a point
-        for a in range(0, max(n, 1), _PLY_BLOCK):
-            rows = np.empty(min(_PLY_BLOCK, n - a), dtype=_PLY_FIELDS)
-            for i, k in enumerate(("x", "y", "z")):
-                rows[k] = cloud.points[a:a + len(rows), i]
-            for i, k in enumerate(("nx", "ny", "nz")):
-                rows[k] = cloud.normals[a:a + len(rows), i]
-            rows["laser"] = cloud.laser[a:a + len(rows)]
-            rows["frame"] = cloud.frame[a:a + len(rows)]
-            f.write(rows.tobytes())
-
-
-def read_ply(path: str | Path) -> dict[str, np.ndarray]:
-    """Vertex properties of a binary little-endian PLY (such as ``write_ply``'s) by name.
-
-    Returns ``{"points": (N, 3)}`` plus ``"normals"``, ``"laser"``, ``"frame"`` and any other
-    property present (as 1-D arrays). Raises ValueError for other PLY flavours.
-    """
-    path = Path(path)
-    with open(path, "rb") as f:
-        head = f.read(1 << 16)  # the header: a few hundred bytes
-        end = head.find(b"end_header\n")
-        if not head.startswith(b"ply\n") or end < 0:
-            raise ValueError(f"{path}: not a PLY file")
-        lines = head[:end].decode("ascii", "replace").splitlines()
-        if "format binary_little_endian 1.0" not in lines:
-            raise ValueError(f"{path}: only binary little-endian PLY is read here")
-        fields: list[tuple[str, str]] = []
-        n = 0
-        element = None
-        for ln in lines:
-            parts = ln.split()
-            if parts[:1] == ["element"]:
-                element = parts[1] if len(parts) > 1 else ""
-                if element == "vertex":
-                    if len(parts) != 3 or not parts[2].isdigit():
-                        raise ValueError(f"{path}: header line {ln!r}: expected 'element vertex <count>'")
-                    n = int(parts[2])
-                elif fields:
-                    break  # vertices come first; later elements (faces) are not read
-            elif parts[:1] == ["property"] and element == "vertex":
-                if len(parts) > 1 and parts[1] == "list":
-                    raise ValueError(f"{path}: list properties on vertices are not supported")
-                if len(parts) != 3 or parts[1] not in _PLY_DTYPES:
-                    raise ValueError(f"{path}: header line {ln!r}: expected 'property <type> <name>' "
-                                     f"with a type among {sorted(_PLY_DTYPES)}")
-                fields.append((parts[2], _PLY_DTYPES[parts[1]]))
-        missing = [k for k in ("x", "y", "z") if k not in [f for f, _ in fields]]
-        if missing:
-            raise ValueError(f"{path}: the vertices have no {', '.join(missing)} property")
-        start = end + len(b"end_header\n")
-        dt = np.dtype(fields)
-        held = (path.stat().st_size - start) // dt.itemsize
-        if held < n:
-            raise ValueError(f"{path}: truncated: the header declares {n} vertices of {dt.itemsize} "
-                             f"bytes, the file holds {held} of them")
-        names = [f for f, _ in fields]
-        normals = all(k in names for k in ("nx", "ny", "nz"))
-        out: dict[str, np.ndarray] = {"points": np.empty((n, 3))}
-        if normals:
-            out["normals"] = np.empty((n, 3))
-        rest = [k for k in names if k not in ("x", "y", "z", "nx", "ny", "nz")]
-        for k in rest:
-            out[k] = np.empty(n, dtype=dt[k])
-        # a block of rows at a time: the whole file in memory would be another 41 B a point
-        f.seek(start)
-        for a in range(0, n, _PLY_BLOCK):
-            rows = np.fromfile(f, dtype=dt, count=min(_PLY_BLOCK, n - a))
-            b = a + len(rows)
-            for i, k in enumerate(("x", "y", "z")):
-                out["points"][a:b, i] = rows[k]
-            if normals:
-                for i, k in enumerate(("nx", "ny", "nz")):
-                    out["normals"][a:b, i] = rows[k]
-            for k in rest:
-                out[k][a:b] = rows[k]
-    return out
-
-
-def write_stl(path: str | Path, vertices: np.ndarray, triangles: np.ndarray) -> None:
-    """Write a triangle mesh as binary STL (float32, mm), atomically and byte-reproducibly."""
-    V = np.asarray(vertices, dtype=np.float64)
-    F = np.asarray(triangles, dtype=np.int64)
-    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
-    nrm = np.cross(b - a, c - a)
-    ln = np.linalg.norm(nrm, axis=1, keepdims=True)
-    nrm = np.divide(nrm, ln, out=np.zeros_like(nrm), where=ln > 0)
-    rec = np.zeros(len(F), dtype=[("n", "<f4", 3), ("v", "<f4", (3, 3)), ("attr", "<u2")])
-    rec["n"] = nrm
-    rec["v"] = np.stack([a, b, c], axis=1)
-    head = b"crossline mesh, base frame, mm".ljust(80, b" ")
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        f.write(head)
-        f.write(np.uint32(len(F)).tobytes())
-        f.write(rec.tobytes())
 
 
 def make_mesh(cloud: FusedCloud, method: str, *, threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
