@@ -263,6 +263,21 @@ def main(argv: list[str] | None = None) -> int:
         lines.append(f"{name:<16} " + " ".join(
             _fmt(k, ff.get(k, math.nan)) for k in ("camera_px", "plane_deg", "handeye_mm"))
             + f" {ff.get('rotation_deg', math.nan):7.4f}")
+    lines.append("does the report's expanded uncertainty U (k = 2) cover the error against truth? E_n = "
+                 "error / U per scan and figure (|E_n| <= 1: covered; the report's validation)")
+    covered = checked = 0
+    for name in caps:
+        mpath = wd / "reports" / name / "metrics.json"
+        scans = json.loads(mpath.read_text()).get("scans", {}) if mpath.is_file() else {}
+        cov = {f"{k}/{fig}": c for k, s in sorted(scans.items())
+               for fig, c in ((s.get("truth") or {}).get("uncertainty_coverage") or {}).items()}
+        rows[name]["coverage"] = cov
+        covered += sum(c["covered"] for c in cov.values())
+        checked += len(cov)
+        lines.append(f"{name:<16} " + ("  ".join(
+            f"{k} {1e3 * c['error_mm']:+.1f}/{1e3 * c['U_mm']:.1f} um = {c['E_n']:+.2f}"
+            + ("" if c["covered"] else "*") for k, c in cov.items()) or "no U"))
+    lines.append(f"U covers the error in {covered} of {checked} figures (* = not covered)")
     lines.append("A/B labels of the AB points against the true centre lines (the report's validation), "
                  "every scan: wrong / checked, and the laser states of its first frames")
     for name, path in caps.items():

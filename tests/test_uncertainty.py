@@ -226,9 +226,19 @@ def test_report_gives_U_and_decision_where_the_calibration_has_covariances(synth
                 if v - r["U"] > r["tolerance"] else "inconclusive (within U of the limit)")
         assert r["decision"] == want
     assert rows["gauge_mean_error_mm"]["U"] == pytest.approx(f["U"])
+    # the validation puts each truth-compared error beside its U: E_n = error / U
+    for scan, err, fig in (("gauge", "mean_error_mm", "mean_mm"), ("ball", "diameter_error_mm",
+                                                                   "diameter_mm")):
+        t = m["scans"][scan]["truth"]
+        U = m["scans"][scan]["uncertainty"]["figures"][fig]["U"]
+        c = t["uncertainty_coverage"][fig]
+        assert c["E_n"] == pytest.approx(t[err] / U, rel=1e-12) and c["U_mm"] == U
+        assert c["covered"] == (abs(t[err]) <= U)
     texts = [" ".join(page_texts(p)) for p in build_pages(m, data.plots)]
     assert fmt_row_value(rows["gauge_mean_error_mm"]) in texts[0]
     page = next(t for t in texts if "Measurement uncertainty" in t and "Decision rule" in t)
+    assert f"{m['scans']['ball']['truth']['uncertainty_coverage']['diameter_mm']['E_n']:+.2f}" in \
+        next(t for t in texts if "Artefacts against their true geometry" in t)
     assert "ISO 14253-1" in page and rows["gauge_mean_error_mm"]["decision"] in page
     # without covariances the contributors are named as missing, the frames still count
     data = build_report(raw, interim, tmp_path / "processed2",

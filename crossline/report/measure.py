@@ -25,6 +25,7 @@ from crossline.report.scan_truth import (
     _mesh_deviation,
     _plane4,
     _speckle_limit,
+    uncertainty_coverage,
 )
 
 __all__ = ["ONE_LINE_NOTE"]
@@ -304,6 +305,10 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
             except (CrosslineError, ValueError, np.linalg.LinAlgError) as exc:
                 out["uncertainty_error"] = str(exc)
                 log.warning("scan %s: no uncertainty: %s", sd.name, exc)
+    if out.get("truth") and (out.get("uncertainty") or {}).get("figures"):
+        cover = uncertainty_coverage(out["truth"], out["uncertainty"]["figures"])
+        if cover:
+            out["truth"]["uncertainty_coverage"] = cover
     if tscan and tscan.get("centrelines") and sd.points_path is not None:
         out["truth_labels"] = _label_truth(sd.points_path, truth_file(root, sd.name, tscan, "centrelines"),
                                            files)

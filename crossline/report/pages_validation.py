@@ -26,6 +26,15 @@ from crossline.report.pages_common import (
 __all__ = ["BUDGET", "UNCERTAINTY_FIGURES", "page_provenance", "page_uncertainty", "page_validation"]
 
 
+def _coverage_rows(truth: dict, figure: str) -> list[list[str]]:
+    """The row saying whether the figure's expanded uncertainty U covers its error (E_n)."""
+    c = (truth.get("uncertainty_coverage") or {}).get(figure)
+    if not c:
+        return []
+    verdict = "U covers it" if c["covered"] else "NOT covered: U misses a contributor"
+    return [["", "error / U (k = 2), E_n", f"{c['E_n']:+.2f} (U {fmt(c['U_mm'], 'mm')}; {verdict})"]]
+
+
 def page_validation(m: dict[str, Any], plots: dict[str, Any]) -> list[Figure]:
     """Every estimate against the simulator's truth: calibrations, artefacts, freeform map."""
     v = m["validation"]
@@ -80,6 +89,7 @@ def page_validation(m: dict[str, Any], plots: dict[str, Any]) -> list[Figure]:
         art = s["artefact"]
         if art == "gauge_block":
             rows.append([name, "mean height − true height", fmt(t["mean_error_mm"], "mm", signed=True)])
+            rows += _coverage_rows(t, "mean_mm")
             rows.append(["", "central length − true height",
                          fmt(t["central_length_error_mm"], "mm", signed=True)])
             hp = t.get("heights_over_true_plate")
@@ -107,6 +117,7 @@ def page_validation(m: dict[str, Any], plots: dict[str, Any]) -> list[Figure]:
             if "diameter_error_mm" in t:
                 rows.append(["", "diameter − true diameter", fmt(t["diameter_error_mm"], "mm",
                                                                   signed=True)])
+                rows += _coverage_rows(t, "diameter_mm")
         elif art == "freeform":
             na = t.get("nominal_alignment")
             if na:

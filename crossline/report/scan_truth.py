@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["read_mesh"]
+__all__ = ["read_mesh", "uncertainty_coverage"]
 
 # the report stage's logger, as before the split: its records keep their name
 log = logging.getLogger("crossline.report.accuracy")
@@ -81,6 +81,30 @@ def _speckle_limit(centre: dict, truth: dict, points: Path,
                      "wavelength_nm": float(las["wavelength_nm"]), "f_number": float(fno),
                      "pixel_um": float(pitch), "magnification": m}
     return out or None
+
+
+# figures compared with the truth that have a Monte Carlo U: error key in the scan's truth ->
+# the uncertainty's figure
+COVERED = {"mean_error_mm": "mean_mm", "diameter_error_mm": "diameter_mm"}
+
+
+def uncertainty_coverage(truth: dict[str, Any], figures: dict[str, Any]) -> dict[str, Any]:
+    """Each truth-compared error over the expanded uncertainty U of its figure: the normalised
+    error E_n = error / U (as ISO 13528 scores a result against a reference value whose own
+    uncertainty is nil); U covers the error where |E_n| <= 1.
+
+    An uncertainty that misses the truth on many rigs leaves out a contributor: the validation
+    shows it beside the error rather than only the error.
+    """
+    out: dict[str, Any] = {}
+    for key, fig in COVERED.items():
+        err, u = truth.get(key), (figures.get(fig) or {}).get("U")
+        if not (isinstance(err, int | float) and isinstance(u, int | float)) or not np.isfinite(u) \
+                or u <= 0:
+            continue
+        en = float(err) / float(u)
+        out[fig] = {"error_mm": float(err), "U_mm": float(u), "E_n": en, "covered": abs(en) <= 1.0}
+    return out
 
 
 def _plane4(v: list, like: np.ndarray | None = None) -> tuple[np.ndarray, float]:
