@@ -12,36 +12,12 @@ inside a 16-bit container, JPEG / TIFF / BMP files, a colour (Bayer) sensor
 parts (camera, lasers, handeye, scans), a noisier arm. ``truth.json`` then records them under
 ``capture_options``; a random rig (``crossline.sim.random_rig``) its draw under ``rig_draw``.
 
-``truth.json`` (format ``crossline-truth/1``; only validation may read it):
-
-* ``camera``: ``K``, ``dist`` (k1, k2, p1, p2, k3), ``image_size``;
-* ``lasers.A|B``: ``normal``, ``d`` (cam frame, n.p + d = 0), ``emitter_cam``,
-  ``fan_centre_cam``, ``fan_half_angle_deg``, ``fan_rolloff``, ``wavelength_nm``, ``waist_mm``,
-  ``m2``, ``focus_mm``, ``rayleigh_mm``, ``thickness_model``, ``peak_electrons``,
-  ``speckle_contrast``, ``speckle_grain_px``;
-* ``T_tool_cam`` (the true X), ``T_base_board`` (the hand-eye board), 4x4 lists;
-* ``board``: rig.yaml's board plus ``light_albedo``, ``dark_albedo``, ``plate_rect_mm``,
-  ``thickness_mm``, ``background_albedo``;
-* ``sensor``: ``bit_depth``, ``full_well_e``, ``gain_e_per_dn``, ``read_noise_e``,
-  ``black_level_dn``, ``prnu``, ``psf_sigma_px``, ``shot_noise``, ``vignetting``,
-  ``scan_window``, ``frame_rate``; ``lighting``: the ambient model and its levels;
-* ``arm_noise``: the model (see ``crossline.sim.arm``) and its numbers;
-* ``calibration``: ``camera[<image>].T_cam_board``, ``laser_A|laser_B[<pose>].T_cam_board``,
-  ``handeye[<image>]``: ``T_base_tool`` (true), ``T_cam_board``, ``error_position_mm``,
-  ``error_rotation_rad`` (reported minus true);
-* ``scans.<name>``: the DESIGN.md keys (gauge: ``height``, ``plate_plane_base``,
-  ``top_plane_base``; plate: ``plane_base``; ball: ``diameter``, ``center_base``; part:
-  ``mesh`` = ``truth/part.ply``) plus ``centrelines`` (``truth/<scan>_centrelines.parquet``:
-  frame, laser, u (full-sensor column), v (full-sensor row, sub-pixel), x_cam, y_cam, z_cam
-  (the surface point on the sheet's centre plane), visible (= lit and unoccluded), lit,
-  unoccluded, surface (which primitive), cos_view and cos_incidence (cosines between the
-  surface normal and the directions to the camera and to the emitter: a stripe on a face seen
-  at grazing angle is visible but covers a sliver of a pixel)), ``poses``
-  (``truth/<scan>_poses.parquet``: frame, time_s, lasers, the true T_base_tool as x, y, z, qw,
-  qx, qy, qz, and the reported-minus-true errors err_x, err_y, err_z (mm, base) and err_rx,
-  err_ry, err_rz (rad, flange)), ``surfaces``, ``frames``, ``pattern``, ``trajectory`` and
-  ``render_stats``; gauge adds ``block`` (centre, axes, size), ball ``stem``, part ``design``
-  (the analytic surface) and ``mesh_triangles``.
+The code lives in modules beside this one (issue 21.3): ``capture_jobs`` (``Plan``,
+``Output``, the render jobs the workers run), ``capture_files`` (rig.yaml and the CSV tables)
+and ``capture_truth`` (``truth.json``, whose format it describes, and the true centreline
+rows). This one resolves the options (``simulate``), plans the jobs, renders them and writes
+the tables (``_render_all``), and re-exports the names its importers use, so
+``from crossline.sim.capture import ...`` works as before.
 """
 
 from __future__ import annotations
@@ -51,33 +27,29 @@ import os
 import shutil
 import sys
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
-import yaml
 
 from crossline.board import Board
 from crossline.errors import CrosslineError
 from crossline.geometry import invert_transform, transform_to_pose
-from crossline.io.atomic import atomic_path, write_json, write_parquet
-from crossline.io.images import write_image, write_png
+from crossline.io.atomic import write_json, write_parquet
 from crossline.sim import arm as arm_mod
 from crossline.sim import views as views_mod
-from crossline.sim.colour import CHANNELS, ColourSensor, laser_wavelength
+from crossline.sim.capture_files import _fmt, _pose_row, _probed_datum, _write_csv, _write_rig_yaml
+from crossline.sim.capture_jobs import ALWAYS_ON_AMBIENT, Output, Plan, _rng, _run, _worker_init
+from crossline.sim.capture_jobs import KIND_SCAN as KIND_SCAN
+from crossline.sim.capture_jobs import _board_centre as _board_centre
+from crossline.sim.capture_jobs import _light_base as _light_base
+from crossline.sim.capture_jobs import _model as _model
+from crossline.sim.capture_truth import _frame_table, _truth_json
+from crossline.sim.colour import CHANNELS, laser_wavelength
 from crossline.sim.part import part_mesh, write_ply, write_stl
 from crossline.sim.presets import PRESETS, RigPreset
 from crossline.sim.random_rig import RANDOM_PRESETS, random_rig
-from crossline.sim.render import Light, RigModel, render_image
-from crossline.sim.scenes import (
-    board_scene_free,
-    board_scene_table,
-    freeform_part,
-    nominal_frame,
-    scan_scene,
-)
+from crossline.sim.scenes import freeform_part, nominal_frame, scan_scene
 
 __all__ = ["IMAGE_FORMATS", "PARTS", "simulate"]
 
@@ -87,203 +59,11 @@ IMAGE_FORMATS = {"png": ".png", "jpeg": ".jpg", "tiff": ".tif", "bmp": ".bmp"}
 EIGHT_BIT_ONLY = ("jpeg", "bmp")
 DENT_SIGMA_MM = 2.5  # a dent's default width (Gaussian sigma): a pressed-in defect of ~6 mm
 DENT_AT = (0.35, 0.2)  # its plan position on the unit part: on the top, off its middle
-DATUM_BASELINE_MM = 40.0  # how far apart the probed datum features of a part are
 NOMINAL_TOL_MM = 1e-3  # chordal tolerance of a freeform's nominal STL, as a CAD export sets it
-ALWAYS_ON_AMBIENT = 0.5  # laser-on poses without a twin: room light at this share of the board views'
-KIND_CAMERA, KIND_LASER, KIND_HANDEYE, KIND_SCAN = 1, 2, 3, 4
-GRAD_MM = 0.0015  # relative change of ambient light per mm across the scene
 SCAN_CHUNK = 3  # frames per job: small jobs, so that the two workers finish together
 
 
-@dataclass(frozen=True)
-class Output:
-    """How images are written: ADC bits, file format, colour, laser-on poses without a twin."""
-
-    data_bits: int | None = None  # None: the container's
-    ext: str = ".png"
-    jpeg_quality: int = 95
-    colour: str | None = None  # the laser's channel of a colour (Bayer) sensor
-    always_on: bool = False
-    nominal_datum: bool = False  # rig.yaml gives each freeform's placement (nominal_pose)
-
-
-@dataclass
-class Plan:
-    """Everything the workers need, decided up front (picklable)."""
-
-    preset: RigPreset
-    seed: int
-    bits: int
-    root: Path
-    jobs: list = field(default_factory=list)
-    out: Output = Output()
-
-
-# ----------------------------------------------------------------------------- workers
-
-_MODELS: dict = {}
-_SCENES: dict = {}
-
-
-def _model(plan: Plan) -> RigModel:
-    # a worker receives a fresh copy of the preset with every job: key on its content
-    key = (plan.preset.name, plan.bits, plan.seed, repr(plan.preset), plan.out)
-    if key not in _MODELS:
-        _MODELS.clear()
-        _SCENES.clear()
-        _MODELS[key] = RigModel(plan.preset, plan.bits, plan.seed, plan.out.data_bits)
-        c = plan.out.colour
-        _MODELS[key].colour = None if c is None else ColourSensor(
-            c, {k: v.wavelength_nm for k, v in plan.preset.lasers.items()})
-    return _MODELS[key]
-
-
-def _write(plan: Plan, rel: str, img: np.ndarray) -> None:
-    """One image of the capture in its format (grey PNG: the fixed-encoding writer)."""
-    path = plan.root / rel
-    if img.ndim == 2 and path.suffix == ".png":
-        write_png(path, img)
-    else:
-        write_image(path, img, jpeg_quality=plan.out.jpeg_quality)
-
-
-def _worker_init() -> None:
-    """Set up a render worker: one BLAS and OpenCV thread, a malloc that keeps its memory.
-
-    One BLAS thread: the workers are the parallelism; a second BLAS thread would only spin
-    (OpenBLAS busy-waits after every product: seconds of CPU for the ray tables' products),
-    and the rendering in one process (``threads=1``) uses one BLAS thread too, so that the
-    bytes cannot depend on the number of processes.
-
-    Every image allocates and frees arrays of tens of MB. glibc hands blocks that large to
-    mmap and back to the kernel on free, so the next image faults the same memory in again,
-    page by page (seconds of system time for the --quick capture; bench_render prints it).
-    In a worker, which exits when the render ends, freed memory is kept for reuse instead:
-    same arithmetic, same bytes, fewer page faults.
-    """
-    from threadpoolctl import threadpool_limits
-
-    cv2.setNumThreads(1)
-    threadpool_limits(limits=1)  # for the life of the worker
-    if sys.platform.startswith("linux"):
-        try:
-            import ctypes
-
-            libc = ctypes.CDLL("libc.so.6")
-            libc.mallopt(-3, 1 << 30)  # M_MMAP_THRESHOLD: blocks below 1 GB come from the heap
-            libc.mallopt(-1, 1 << 30)  # M_TRIM_THRESHOLD: keep up to 1 GB of free heap
-        except (OSError, AttributeError):  # pragma: no cover - not glibc
-            pass
-
-
-def _light_board(T_cam_board: np.ndarray, e_white: float, centre_board: np.ndarray) -> Light:
-    R = T_cam_board[:3, :3]
-    return Light(e_white, R @ np.array([0.0, 0.0, -1.0]), R @ np.array([GRAD_MM, -0.6 * GRAD_MM, 0.0]),
-                 R @ centre_board + T_cam_board[:3, 3])
-
-
-def _light_base(T_cam_base: np.ndarray, e_white: float, ref_base: np.ndarray) -> Light:
-    R = T_cam_base[:3, :3]
-    return Light(e_white, R @ np.array([0.0, 0.0, 1.0]), R @ np.array([0.8 * GRAD_MM, GRAD_MM, 0.0]),
-                 R @ ref_base + T_cam_base[:3, 3])
-
-
-
-def _rng(seed: int, *key: int) -> np.random.Generator:
-    return np.random.default_rng([int(seed), *[int(k) for k in key]])
-
-
-def _board_centre(preset: RigPreset) -> np.ndarray:
-    ex, ey = preset.board.board.extent()
-    return np.array([ex / 2, ey / 2, 0.0])
-
-
-def _run(plan: Plan, job: tuple) -> tuple[str, Any, int]:
-    """Render one job; returns (kind, result, number of images written)."""
-    cv2.setNumThreads(1)
-    model = _model(plan)
-    preset = plan.preset
-    kind = job[0]
-    full = model.sensor_window
-    colour = model.colour
-    if kind == "camera":
-        _, i, T, rel = job
-        scene = board_scene_free(preset.board).transformed(T)
-        light = _light_board(T, preset.ambient_board_e, _board_centre(preset))
-        dn, _, _ = render_image(model, scene, light, full, (), _rng(plan.seed, KIND_CAMERA, i),
-                                ambient="full", truth=False, colour=colour)
-        _write(plan, rel, dn)
-        return kind, None, 1
-    if kind == "laser":
-        _, laser, i, T, rel_board, rel_laser = job
-        li = "AB".index(laser)
-        scene = board_scene_free(preset.board).transformed(T)
-        if rel_board is not None:
-            light = _light_board(T, preset.ambient_board_e, _board_centre(preset))
-            dn, _, _ = render_image(model, scene, light, full, (),
-                                    _rng(plan.seed, KIND_LASER, li, i, 0), ambient="full",
-                                    truth=False, colour=colour)
-            _write(plan, rel_board, dn)
-            # the room light of the laser-on image traced like the board view's ("full"), not
-            # interpolated from a coarse grid as in scan frames: calibration subtracts the two
-            # images, and a smeared board there would leave the board's edges in the difference
-            light = _light_board(T, preset.ambient_scan_e, _board_centre(preset))
-            dn, _, _ = render_image(model, scene, light, full, (laser,),
-                                    _rng(plan.seed, KIND_LASER, li, i, 1), ambient="full",
-                                    truth=False, colour=colour)
-        else:  # laser always on: one image in which the board must be found despite the stripe
-            light = _light_board(T, ALWAYS_ON_AMBIENT * preset.ambient_board_e, _board_centre(preset))
-            dn, _, _ = render_image(model, scene, light, full, (laser,),
-                                    _rng(plan.seed, KIND_LASER, li, i, 1), ambient="full",
-                                    truth=False, colour=colour)
-        _write(plan, rel_laser, dn)
-        return kind, None, 1 if rel_board is None else 2
-    if kind == "handeye":
-        _, i, T_cam_base, rel = job
-        key = ("handeye",)
-        if key not in _SCENES:
-            _SCENES[key] = board_scene_table(preset)
-        scene = _SCENES[key].transformed(T_cam_base)
-        centre = preset.T_base_board[:3, :3] @ _board_centre(preset) + preset.T_base_board[:3, 3]
-        light = _light_base(T_cam_base, preset.ambient_board_e, centre)
-        dn, _, _ = render_image(model, scene, light, full, (), _rng(plan.seed, KIND_HANDEYE, i),
-                                ambient="full", truth=False, colour=colour)
-        _write(plan, rel, dn)
-        return kind, None, 1
-    if kind == "scan":
-        _, si, name, frames = job
-        spec = next(s for s in preset.scans if s.name == name)
-        key = ("scan", name)
-        if key not in _SCENES:
-            _SCENES[key] = scan_scene(preset, spec)
-        scene_base, _, aim = _SCENES[key]
-        tables = []
-        stats = []
-        for frame, state, T_cam_base in frames:
-            lasers = () if state == "off" else tuple(state)
-            scene = scene_base.transformed(T_cam_base)
-            light = _light_base(T_cam_base, preset.ambient_scan_e, aim)
-            dn, rows, st = render_image(model, scene, light, model.scan_window, lasers,
-                                        _rng(plan.seed, KIND_SCAN, si, frame), ambient="coarse",
-                                        colour=colour)
-            _write(plan, f"scans/{name}/frames/{frame:06d}{plan.out.ext}", dn)
-            # plain arrays: the parent makes the tables (workers never import pandas)
-            tables.extend((frame, laser, r) for laser, r in rows.items() if r is not None)
-            stats.append({"frame": frame, "peak_dn": int(dn.max()), **st})
-        return kind, (name, tables, stats), len(frames)
-    raise ValueError(f"unknown job {kind!r}")
-
-
 # ----------------------------------------------------------------------------- planning
-
-
-def _fmt(x: float) -> str:
-    return repr(float(x))
-
-
-def _pose_row(T: np.ndarray) -> list[str]:
-    p, q = transform_to_pose(T)
-    return [_fmt(v) for v in p] + [_fmt(v) for v in q]
 
 
 def _resolve(preset: RigPreset | str, seed: int = 0) -> RigPreset:
@@ -476,19 +256,10 @@ def simulate(
     return out
 
 
-def _frame_table(frame: int, laser: str, rows: dict):
-    """The true centreline rows of one laser in one frame as a table."""
-    import pandas as pd
-
-    df = pd.DataFrame(rows)
-    df.insert(0, "laser", laser)
-    df.insert(0, "frame", frame)
-    return df
-
 
 def _render_all(rig: RigPreset, root: Path, seed: int, quick: bool, frames: int | None,
                 pattern: list[str], bits: int, scan_names: list[str], threads: int,
-                progress: bool, output: Output = Output(), parts: tuple[str, ...] = PARTS,
+                progress: bool, output: Output = Output(), parts: tuple[str, ...] = PARTS,  # noqa: B008
                 options: dict | None = None) -> None:
     import pandas as pd
 
@@ -681,124 +452,3 @@ def _render_all(rig: RigPreset, root: Path, seed: int, quick: bool, frames: int 
         truth["rig_draw"] = rig.draw
     write_json(root / "truth.json", truth)
     _write_rig_yaml(root / "rig.yaml", rig, bits, scan_names, output, "scans" in parts, datums)
-
-
-def _write_csv(path: Path, header: list[str], rows: list[list[str]]) -> None:
-    text = ",".join(header) + "\n" + "".join(",".join(r) + "\n" for r in rows)
-    with atomic_path(path) as tmp:
-        tmp.write_text(text)
-
-
-def _truth_json(rig: RigPreset, seed: int, quick: bool, bits: int, pattern: list[str],
-                truth_cal: dict, scan_truth: dict, output: Output = Output()) -> dict:
-    from crossline.sim.sheet import LaserSheet
-
-    s = rig.sensor
-    b = rig.board
-    dbits = output.data_bits or bits
-    sensor = {
-        "bit_depth": bits, "full_well_e": s.full_well_e,
-        "gain_e_per_dn": s.gain_e_per_dn(dbits), "read_noise_e": s.read_noise_e,
-        "black_level_dn": s.black_dn(dbits), "prnu": s.prnu, "psf_sigma_px": s.psf_sigma_px,
-        "shot_noise": "Poisson below 30 e-, Gaussian sqrt(e) above",
-        "vignetting": "cos^4 of the field angle",
-        "scan_window": list(s.scan_window), "frame_rate": s.frame_rate,
-        "pixel_pitch_um": s.pixel_pitch_um, "f_number": s.f_number,
-    }
-    if output.data_bits is not None:
-        sensor["data_bits"] = dbits
-    if output.colour is not None:
-        from crossline.sim.colour import AMBIENT_GAINS
-
-        sensor["colour"] = {
-            "mosaic": "RGGB Bayer, red at even rows and columns of the full sensor; demosaiced "
-                      "bilinearly (OpenCV)",
-            "channel": output.colour, "ambient_gains_rgb": list(AMBIENT_GAINS),
-            "laser_gains_rgb": {k: ColourSensor(output.colour, {k: v.wavelength_nm}).laser[k].tolist()
-                                for k, v in rig.lasers.items()},
-        }
-    return {
-        "format": "crossline-truth/1",
-        "simulated": True,
-        "preset": rig.name,
-        "seed": seed,
-        "quick": bool(quick),
-        "camera": {"K": [list(r) for r in s.K], "dist": list(s.dist),
-                   "image_size": [s.width, s.height]},
-        "lasers": {k: LaserSheet(k, v).to_dict() for k, v in rig.lasers.items()},
-        "T_tool_cam": rig.T_tool_cam,
-        "T_base_board": rig.T_base_board,
-        "board": {**b.board.to_dict(), "light_albedo": b.light_albedo, "dark_albedo": b.dark_albedo,
-                  "plate_rect_mm": list(b.plate_rect()), "thickness_mm": b.thickness_mm,
-                  "background_albedo": b.background_albedo},
-        "sensor": sensor,
-        "lighting": {"board_views_e_white": rig.ambient_board_e,
-                     "scan_exposure_e_white": rig.ambient_scan_e,
-                     "model": "e = e_white * albedo * (0.6 + 0.4 max(0, N.up)) * (1 + grad.(P-ref)) "
-                              "* cos^4; laser images of calibration use the scan exposure"},
-        "arm_noise": arm_mod.noise_to_dict(rig.arm),
-        "table_z_base": rig.table_z_mm,
-        "calibration": truth_cal,
-        "scans": scan_truth,
-    }
-
-
-def _probed_datum(T_base_nominal: np.ndarray, rig: RigPreset,
-                  rng: np.random.Generator) -> tuple[list[float], dict[str, Any]]:
-    """A freeform's placement as ``nominal_pose`` (x, y, z, qw, qx, qy, qz), probed with the
-    arm: off by the arm's per-axis error, and turned by it over the datums' baseline."""
-    from crossline.geometry import make_transform, rotvec_to_matrix
-
-    dt = rng.normal(0.0, rig.arm.sigma_axis_mm, 3)
-    dr = rng.normal(0.0, rig.arm.sigma_axis_mm / DATUM_BASELINE_MM, 3)
-    T = make_transform(rotvec_to_matrix(dr), dt) @ T_base_nominal
-    p, q = transform_to_pose(T)
-    error = {"translation_mm": dt.tolist(), "rotation_rad": dr.tolist(),
-             "model": f"arm per-axis sigma {rig.arm.sigma_axis_mm:.4g} mm, turned by it over "
-                      f"{DATUM_BASELINE_MM:g} mm"}
-    return [round(float(v), 6) for v in (*p, *q)], error
-
-
-def _write_rig_yaml(path: Path, rig: RigPreset, bits: int, scan_names: list[str],
-                    output: Output = Output(), with_scans: bool = True,
-                    datums: dict[str, list[float]] | None = None) -> None:
-    s = rig.sensor
-    x, y, w, h = s.scan_window
-    scans = {}
-    for spec in rig.scans:
-        if spec.name not in scan_names:
-            continue
-        entry: dict[str, Any] = {"artefact": spec.artefact}
-        if spec.artefact == "freeform":
-            entry["nominal"] = f"{spec.name}.stl"
-            if datums and spec.name in datums:
-                entry["nominal_pose"] = datums[spec.name]
-        if spec.artefact == "gauge_block":
-            entry["height"] = float(spec.params["height"])
-        if spec.artefact == "sphere":
-            entry["diameter"] = float(spec.params["diameter"])
-        scans[spec.name] = entry
-    sensor: dict[str, Any] = {"width": s.width, "height": s.height, "bit_depth": bits}
-    if output.data_bits is not None:
-        sensor["data_bits"] = output.data_bits
-    if output.colour is not None:
-        sensor["channel"] = output.colour
-    data: dict[str, Any] = {
-        "format": "crossline-capture/1",
-        "description": f"simulated: {rig.description}",
-        "capture_date": rig.capture_date,
-        "simulated": True,
-        "sensor": sensor,
-    }
-    if tuple(rig.lasers) != ("A", "B"):
-        data["lasers"] = list(rig.lasers)
-    data.update({
-        "scan_window": {"x": x, "y": y, "width": w, "height": h},
-        "frame_rate": float(s.frame_rate),
-        "board": rig.board.board.to_dict(),
-    })
-    if with_scans:
-        data["scans"] = scans
-    text = yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=100)
-    with atomic_path(path) as tmp:
-        tmp.write_text(text)
