@@ -16,7 +16,8 @@ import numpy as np
 from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure
 
-from crossline.report.pages import (
+from crossline.report.pages_calibration import page_camera, page_handeye, page_lasers
+from crossline.report.pages_common import (
     COLOURS,
     LEFT,
     RC,
@@ -26,11 +27,8 @@ from crossline.report.pages import (
     fmt,
     fmt_row_value,
     fmt_tolerance,
-    page_camera,
-    page_handeye,
-    page_lasers,
-    page_provenance,
 )
+from crossline.report.pages_validation import page_provenance
 
 __all__ = ["build_certificate_pages", "render_certificate"]
 

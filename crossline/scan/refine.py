@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from crossline.geometry import make_transform, rotvec_to_matrix, transform_points
-from crossline.report.metrics import robust_sigma
+from crossline.report.fitting import robust_sigma
 
 __all__ = [
     "ArmPrior",

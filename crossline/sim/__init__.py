@@ -6,12 +6,15 @@ rendered into ``<out>.partial-<pid>`` and renamed to ``<out>`` at the end (rig.y
 last), so an interrupted run never leaves a folder that looks complete.
 
 Module map: ``presets`` (the rigs and every number), ``optics`` (rays through the distortion,
-sensor chain, speckle), ``scene`` (analytic primitives), ``scenes`` (artefacts and board),
+sensor chain, speckle), ``scene`` (analytic primitives: ``vec3``
+row-wise vectors, ``primitive`` the base classes, ``planar`` half-spaces and boxes, ``quadrics``
+spheres and cylinders, ``freeform`` the part and its dent), ``scenes`` (artefacts and board),
 ``texture`` (board patterns), ``sheet`` (laser irradiance), ``render`` (an image from its
 parts: ``rig_model``, the rig's camera, lasers, sensor and light; ``ambient``, board views and
 faint ambient light; ``stripe``, the band and the true stripe; ``band``, laser light in the
 band), ``arm`` (trajectories and pose noise), ``views`` (calibration poses), ``part`` (the
-freeform's truth mesh), ``capture`` (this package's writer, in ``simulate``), ``truth`` (the true
+freeform's truth mesh), ``capture`` (this package's writer, in ``simulate``; ``capture_jobs`` the render jobs,
+``capture_files`` rig.yaml and CSVs, ``capture_truth`` truth.json), ``truth`` (the true
 calibration written as the stages' artefacts, to score later stages alone), ``random_rig`` (whole
 rigs drawn from a seed: ``simulate(out, "random", seed)``), ``colour`` (a Bayer colour sensor).
 """
