@@ -32,38 +32,33 @@ sys.path.insert(0, str(HERE))
 
 from bench_rigs import parse_seeds, render, run_workflow  # noqa: E402
 
+from crossline.report.scan_truth import uncertainty_coverage  # noqa: E402
+
 CACHE = HERE / ".cache" / "uncertainty"
 RESULTS = HERE / "results"
 
-# figure -> (scan artefact, Monte Carlo figure, truth key of the report's scan entry)
+# figure -> (scan, Monte Carlo figure): scored as the report's validation scores it
 SCORED = {
-    "gauge_height": ("gauge", "mean_mm", ("truth", "mean_error_mm")),
-    "sphere_diameter": ("ball", "diameter_mm", ("truth", "diameter_error_mm")),
+    "gauge_height": ("gauge", "mean_mm"),
+    "sphere_diameter": ("ball", "diameter_mm"),
 }
 
 
-def _get(d: Any, keys: tuple[str, ...]) -> Any:
-    for k in keys:
-        if not isinstance(d, dict) or k not in d:
-            return None
-        d = d[k]
-    return d
-
-
 def score(metrics: dict[str, Any]) -> dict[str, dict[str, float]]:
-    """Per scored figure: the true error, u, U and whether |error| <= U (NaN: not measured)."""
+    """Per scored figure: the true error, u, U and whether |error| <= U (NaN: not measured), as
+    the report's validation scores it (crossline.report.scan_truth.uncertainty_coverage)."""
     out = {}
-    for name, (scan, fig, truth_key) in SCORED.items():
+    for name, (scan, fig) in SCORED.items():
         s = (metrics.get("scans") or {}).get(scan) or {}
-        f = _get(s, ("uncertainty", "figures", fig)) or {}
-        err = _get(s, truth_key)
-        if err is None or "U" not in f:
+        f = ((s.get("uncertainty") or {}).get("figures") or {}).get(fig) or {}
+        c = uncertainty_coverage(s.get("truth") or {}, {fig: f}).get(fig)
+        if c is None:
             out[name] = {"error_um": math.nan, "u_um": math.nan, "U_um": math.nan,
                          "covered": math.nan, "dominant": None}
             continue
-        out[name] = {"error_um": 1e3 * float(err), "u_um": 1e3 * f["u"], "U_um": 1e3 * f["U"],
-                     "covered": float(abs(err) <= f["U"]), "dominant": f["dominant"],
-                     "budget_um": {c: 1e3 * b["u"] for c, b in f["budget"].items()}}
+        out[name] = {"error_um": 1e3 * c["error_mm"], "u_um": 1e3 * f["u"], "U_um": 1e3 * c["U_mm"],
+                     "covered": float(c["covered"]), "dominant": f["dominant"],
+                     "budget_um": {k: 1e3 * b["u"] for k, b in f["budget"].items()}}
     return out
 
 
