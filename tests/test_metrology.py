@@ -278,6 +278,78 @@ def test_sphere_wrong_nominal_fails_clearly():
         mt.measure_sphere(pts, 40.0)
 
 
+def ball_bar_scene(length=55.0, diameter=25.0, noise=0.0, seed=0, T=None, n=30000):
+    """Two balls on stems over a plate, ``length`` apart (the second 6 mm higher: an inclined
+    bar), moved by ``T``; returns points and both true centres."""
+    pts, _, c = sphere_scene(n=n, diameter=diameter, noise=0.0, seed=seed)
+    # the second ball: the first's points (ball and stem only; the plate once) shifted along
+    # the bar, so the scene holds two balls of identical shape
+    shift = np.array([length * np.sqrt(1 - (6.0 / length) ** 2), 0.0, 6.0])
+    on_plate = pts[:, 2] == 0.0
+    P = np.vstack([pts, pts[~on_plate] + shift])
+    # the plate must not run through the second ball's region: drop plate points under it
+    near2 = (np.hypot(P[:, 0] - shift[0], P[:, 1]) < 4) & (P[:, 2] == 0.0)
+    P = P[~near2]
+    cs = np.array([c, c + shift])
+    rng = np.random.default_rng(seed + 1)
+    if noise:
+        P = P + rng.normal(scale=noise, size=P.shape)
+    if T is not None:
+        P, cs = transform_points(T, P), transform_points(T, cs)
+    return P, cs
+
+
+def test_ball_bar_exact_in_any_pose():
+    T = pose(21)
+    P, cs = ball_bar_scene(T=T)
+    b = mt.measure_ball_bar(P, 25.0, 55.0)
+    f = b.figures()
+    true = np.linalg.norm(cs[0] - cs[1])
+    assert true == pytest.approx(55.0, abs=1e-9)
+    assert f["length_mm"] == pytest.approx(true, abs=1e-6)
+    assert f["length_error_mm"] == pytest.approx(0.0, abs=1e-6)
+    # ball 1 is the one with the smaller base-frame x, and each ball is its own true one
+    order = np.argsort(cs[:, 0])
+    for k in range(2):
+        assert np.linalg.norm(b.balls[k].centre - cs[order[k]]) < 1e-6
+        assert abs(f["balls"][k]["size_error_mm"]) < 1e-6
+    # the two balls' points are disjoint, and neither takes the plate
+    assert not np.any(b.balls[0].inlier_mask & b.balls[1].inlier_mask)
+    assert f["n"] == int(b.inlier_mask.sum()) < len(P)
+
+
+def test_ball_bar_noisy_length_and_its_monte_carlo_figure():
+    sigma = 0.005
+    P, cs = ball_bar_scene(noise=sigma, seed=3, n=40000)
+    b = mt.measure_ball_bar(P, 25.0, 55.0)
+    # each centre from ~25 000 points of a cap: far below the noise
+    assert abs(b.length - np.linalg.norm(cs[0] - cs[1])) < 0.001
+    # the uncertainty's figure: the report's value on its own points, and a centre moved by
+    # a known vector along the bar changes the length by that much
+    from crossline.report import uncertainty as uc
+
+    fig = uc.ball_bar_figures(b)
+    w = np.ones(len(P))
+    assert fig(P, w)["length_mm"] == pytest.approx(b.length, abs=1e-9)
+    u = (b.balls[1].centre - b.balls[0].centre) / b.length
+    Q = P.copy()
+    Q[b.balls[1].inlier_mask] += 0.01 * u
+    assert fig(Q, w)["length_mm"] == pytest.approx(b.length + 0.01, abs=1e-7)
+
+
+def test_ball_bar_without_its_second_ball_fails_clearly():
+    pts, _, _ = sphere_scene(stem=True)
+    with pytest.raises(ValueError, match=r"where the second ball should be|no second ball"):
+        mt.measure_ball_bar(pts, 25.0, 55.0)
+    # a bar far longer than its nominal: the second ball is not where it should be
+    P, _ = ball_bar_scene(length=100.0)
+    with pytest.raises(ValueError, match="second ball"):
+        mt.measure_ball_bar(P, 25.0, 55.0)
+    # one whose near side is within reach is measured as it is (its SD then fails the check)
+    P, _ = ball_bar_scene(length=80.0)
+    assert mt.measure_ball_bar(P, 25.0, 55.0).length == pytest.approx(80.0, abs=1e-6)
+
+
 # ----------------------------------------------------------------------------- freeform
 
 

@@ -36,6 +36,7 @@ ARTEFACTS: dict[str, tuple[str, ...]] = {
     "plane": (),
     "sphere": ("diameter",),
     "freeform": (),
+    "ball_bar": ("diameter", "length"),  # two balls, nominal centre-to-centre distance
 }
 QUAT_TOLERANCE = 1e-3  # |‖q‖ − 1| allowed before a quaternion is rejected
 MIN_LASER_POSES = 2

@@ -67,6 +67,7 @@ DEFAULT_TOLERANCES: dict[str, float] = {
     "plane_band_mm": 0.05,  # the band of the plane histogram (the paper: ±0.05 mm)
     "sphere_size_error_mm": 0.01,  # |fitted − nominal diameter|
     "sphere_form_error_mm": 0.03,  # range of radial residuals (statistic: see below)
+    "ball_bar_sd_mm": 0.02,  # |ball bar centre distance − nominal| (ISO 10360-8 MPE_SD)
     "ab_height_difference_mm": 0.005,  # |gauge height from A points − from B points|
     "nominal_within_share": 0.95,  # freeform with a nominal: share within ±nominal_band_mm of it
     "nominal_band_mm": 0.05,  # the tolerance band around the nominal surface
@@ -287,6 +288,14 @@ def build_report(
                 _check(rows, "sphere_size_error_steep_mm",
                        f"sphere: size error, incidence ≤ {inc['max_incidence_deg']:.0f}°", name,
                        inc["size_error_steep_mm"], "mm", None, use_abs=True)
+        elif sd.artefact == "ball_bar":
+            _check(rows, "ball_bar_sd_mm", "ball bar: sphere-spacing error SD (distance − nominal)",
+                   name, m.get("length_error_mm"), "mm", tol["ball_bar_sd_mm"], use_abs=True,
+                   note=err)
+            _check(rows, "ball_bar_size_error_mm", "ball bar: size error, larger of the two balls",
+                   name, m.get("size_error_max_mm"), "mm", None, use_abs=True, note=err)
+            _check(rows, "ball_bar_form_error_mm", "ball bar: form error (all points), larger ball",
+                   name, m.get("form_error_max_mm"), "mm", None, note=err)
         elif sd.artefact == "freeform":
             nc = s.get("nominal_comparison")
             if nc or s.get("nominal_error"):

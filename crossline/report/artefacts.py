@@ -4,7 +4,8 @@
 ``measure_gauge_block`` (the paper's Fig. 10: every top-face point against the plate plane,
 the central length and parallelism) with its ``GaugeResult`` and the 2-D outline helpers it
 uses (``plane_basis``, convex hull edges and margins); ``measure_sphere`` (ISO 10360-8
-PSize / PForm) with its ``SphereResult`` and ``sphere_by_incidence``. Built on the fitting of
+PSize / PForm) with its ``SphereResult`` and ``sphere_by_incidence``; ``measure_ball_bar``
+(ISO 10360-8 sphere-spacing error SD) with its ``BallBarResult``. Built on the fitting of
 ``crossline.report.fitting``; split from ``crossline.report.metrics`` (issue 21.3), which
 re-exports these names.
 """
@@ -28,9 +29,11 @@ from crossline.report.fitting import (
 )
 
 __all__ = [
+    "BallBarResult",
     "GaugeResult",
     "PlaneResult",
     "SphereResult",
+    "measure_ball_bar",
     "measure_gauge_block",
     "measure_plane",
     "measure_sphere",
@@ -489,3 +492,85 @@ def sphere_by_incidence(
         out["n_steep"] = int(steep.sum())
         out["size_error_steep_mm"] = 2 * rad - sphere.nominal_diameter_mm
     return out
+
+
+# ----------------------------------------------------------------------------- ball bar
+
+
+@dataclass(frozen=True)
+class BallBarResult:
+    """Two balls of a ball bar and their centre distance (ISO 10360-8 sphere-spacing error SD)."""
+
+    nominal_length_mm: float
+    balls: tuple[SphereResult, SphereResult]  # ordered along the base frame's x, then y
+
+    @property
+    def length(self) -> float:
+        """The measured centre-to-centre distance, mm."""
+        return float(np.linalg.norm(self.balls[0].centre - self.balls[1].centre))
+
+    @property
+    def inlier_mask(self) -> np.ndarray:
+        """The points of either ball (N,)."""
+        return self.balls[0].inlier_mask | self.balls[1].inlier_mask
+
+    @property
+    def residuals(self) -> np.ndarray:
+        """Radial residuals of both balls' points, ball 1's first."""
+        return np.concatenate([b.residuals for b in self.balls])
+
+    def figures(self) -> dict[str, Any]:
+        """Centre distance and its error SD (measured − nominal length); each ball's size and
+        form (PSize, PForm) as :meth:`SphereResult.figures` gives them."""
+        L = self.length
+        balls = [b.figures() for b in self.balls]
+        return {
+            "nominal_length_mm": self.nominal_length_mm,
+            "length_mm": L,
+            "length_error_mm": L - self.nominal_length_mm,
+            "n": int(sum(b["n"] for b in balls)),
+            "n_total": int(self.inlier_mask.size),
+            "size_error_max_mm": max((b["size_error_mm"] for b in balls), key=abs),
+            "form_error_max_mm": max(b["form_error_mm"] for b in balls),
+            "balls": balls,
+        }
+
+
+def measure_ball_bar(
+    points: np.ndarray,
+    nominal_diameter: float,
+    nominal_length: float,
+    *,
+    ransac_threshold_mm: float = 0.2,
+    trim_sigma: float = 5.0,
+    search_fraction: float = 0.1,
+    seed: int = 0,
+) -> BallBarResult:
+    """Both balls of a ball bar among other points (stems, bar, table), each a least-squares
+    sphere as :func:`measure_sphere` fits it.
+
+    The first ball is the one RANSAC finds among all points; the second is sought among the
+    points whose distance from the first one's centre is the nominal length within the ball's
+    radius and ``search_fraction`` of the length (a bar far longer or shorter than its
+    nominal is not found, and says so).
+    """
+    p = np.asarray(points, dtype=np.float64)
+    kw = dict(ransac_threshold_mm=ransac_threshold_mm, trim_sigma=trim_sigma, seed=seed)
+    first = measure_sphere(p, nominal_diameter, **kw)
+    dist = np.linalg.norm(p - first.centre, axis=1)
+    reach = nominal_diameter / 2 + max(search_fraction * nominal_length, 4 * ransac_threshold_mm)
+    cand = np.flatnonzero((np.abs(dist - nominal_length) <= reach) & ~first.inlier_mask)
+    if len(cand) < MIN_POINTS:
+        raise ValueError(f"measure_ball_bar: one ball found (centre {np.round(first.centre, 3).tolist()} "
+                         f"mm), but only {len(cand)} points lie {nominal_length:g} mm "
+                         f"± {reach:.3g} mm from it, where the second ball should be")
+    try:
+        s = measure_sphere(p[cand], nominal_diameter, **kw)
+    except ValueError as exc:
+        raise ValueError(f"measure_ball_bar: no second ball {nominal_length:g} mm from the first "
+                         f"({exc})") from None
+    mask = np.zeros(len(p), dtype=bool)
+    mask[cand[s.inlier_mask]] = True
+    second = SphereResult(s.nominal_diameter_mm, s.centre, s.radius, s.residuals, mask)
+    balls = sorted((first, second), key=lambda b: (round(float(b.centre[0]), 6), float(b.centre[1])))
+    return BallBarResult(float(nominal_length), (balls[0], balls[1]))

@@ -111,6 +111,25 @@ def _alignment_error(T_nominal_cloud: np.ndarray, T_base_nominal: np.ndarray,
     return {k: v for k, v in e.items() if isinstance(v, int | float)}
 
 
+def _ball_bar_truth(b: Any, tscan: dict) -> dict[str, Any]:
+    """The ball bar against its true centres: each measured ball matched to the nearer true
+    one, the centres' errors and the centre distance's error against the TRUE distance."""
+    t: dict[str, Any] = {}
+    if "diameter" in tscan:
+        t["true_diameter_mm"] = float(tscan["diameter"])
+        t["diameter_errors_mm"] = [2 * s.radius - float(tscan["diameter"]) for s in b.balls]
+    cs = np.asarray(tscan.get("centers_base") or [], dtype=np.float64)
+    if cs.shape == (2, 3):
+        m = np.array([s.centre for s in b.balls])
+        swap = (np.linalg.norm(m - cs[::-1], axis=1).sum() < np.linalg.norm(m - cs, axis=1).sum())
+        cs = cs[::-1] if swap else cs
+        t["centre_errors_mm"] = (m - cs).tolist()
+        t["centre_distances_mm"] = np.linalg.norm(m - cs, axis=1).tolist()
+        t["true_length_mm"] = float(np.linalg.norm(cs[0] - cs[1]))
+        t["length_error_mm"] = b.length - t["true_length_mm"]
+    return t
+
+
 def _whole_cloud(figures: Any, subset: np.ndarray | None = None) -> Any:
     """A figures function that needs no per-point state: the same on any subset."""
     return figures
@@ -258,6 +277,17 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
                     t["true_diameter_mm"] = float(tscan["diameter"])
                     t["diameter_error_mm"] = 2 * s.radius - float(tscan["diameter"])
                 out["truth"] = t
+        elif sd.artefact == "ball_bar":
+            b = mt.measure_ball_bar(P, float(sd.nominal.get("diameter", np.nan)),
+                                    float(sd.nominal.get("length", np.nan)),
+                                    ransac_threshold_mm=float(met["sphere_ransac_mm"]),
+                                    trim_sigma=float(met["sphere_trim_sigma"]), seed=seed)
+            out["measurement"] = b.figures()
+            figures = partial(uc.ball_bar_figures, b)
+            sd.plots["hist"] = {"values": b.residuals, "xlabel": "radial residual, both balls (mm)",
+                                "bins": bins, "kind": "ball_bar"}
+            if tscan:
+                out["truth"] = _ball_bar_truth(b, tscan)
         elif sd.artefact == "freeform":
             out["measurement"] = {"n": len(P)}
             if sd.mesh:

@@ -19,6 +19,8 @@ The figures follow the paper and the standards a metrologist expects:
 - sphere (ISO 10360-8 PSize / PForm): least-squares sphere on the RANSAC inliers, size
   error = fitted − nominal diameter, form error = range of radial residuals, for all points
   and for the 95 % closest to the sphere (``PForm.Sph.D95%``);
+- ball bar (ISO 10360-8 SD): both balls' least-squares spheres, sphere-spacing error =
+  measured − nominal centre distance, each ball's size and form beside it;
 - freeform: signed distance of every point to a reference mesh (float64 refinement).
 
 The code lives in modules beside this one (issue 21.3): ``fitting`` (least-squares and
@@ -39,9 +41,11 @@ import numpy as np
 from crossline.geometry import angle_between as angle_between
 from crossline.geometry import fit_sphere, plane_distance
 from crossline.report.artefacts import (
+    BallBarResult,
     GaugeResult,
     PlaneResult,
     SphereResult,
+    measure_ball_bar,
     measure_gauge_block,
     measure_plane,
     measure_sphere,
@@ -70,6 +74,7 @@ from crossline.report.validation import plane_depth_range as plane_depth_range
 
 __all__ = [
     "ABComparison",
+    "BallBarResult",
     "GaugeResult",
     "PlaneResult",
     "SphereResult",
@@ -81,6 +86,7 @@ __all__ = [
     "label_errors",
     "laser_codes",
     "laser_plane_error",
+    "measure_ball_bar",
     "measure_gauge_block",
     "measure_plane",
     "measure_sphere",

@@ -193,6 +193,17 @@ def page_scan(m: dict[str, Any], name: str, plots: dict[str, Any]) -> Figure:
                           f"form (all) {fmt(meas['form_error_mm'], 'mm')}",
                           f"form (D95) {fmt(meas['form_error_d95_mm'], 'mm')}",
                           f"n          {fmt(meas['n'])}"])
+        elif hist["kind"] == "ball_bar":
+            ax.set_title("Radial residuals of both balls' least-squares spheres", loc="left")
+            b1, b2 = meas["balls"]
+            _textbox(ax, [f"distance   {fmt(meas['length_mm'], 'mm')}",
+                          f"nominal    {fmt(meas['nominal_length_mm'], 'mm')}",
+                          f"SD         {fmt(meas['length_error_mm'], 'mm', signed=True)}",
+                          f"size error {fmt(b1['size_error_mm'], 'mm', signed=True)} / "
+                          f"{fmt(b2['size_error_mm'], 'mm', signed=True)}",
+                          f"form (all) {fmt(b1['form_error_mm'], 'mm')} / "
+                          f"{fmt(b2['form_error_mm'], 'mm')}",
+                          f"n          {fmt(b1['n'])} / {fmt(b2['n'])}"])
         inc = s.get("incidence")
         if inc and inc.get("bands"):
             p.gap(0.02)

@@ -118,6 +118,17 @@ def page_validation(m: dict[str, Any], plots: dict[str, Any]) -> list[Figure]:
                 rows.append(["", "diameter − true diameter", fmt(t["diameter_error_mm"], "mm",
                                                                   signed=True)])
                 rows += _coverage_rows(t, "diameter_mm")
+        elif art == "ball_bar":
+            if "length_error_mm" in t:
+                rows.append([name, "centre distance − true distance (SD against truth)",
+                             fmt(t["length_error_mm"], "mm", signed=True)])
+                rows += _coverage_rows(t, "length_mm")
+            if "centre_distances_mm" in t:
+                rows.append(["", "centres − true centres (distance), ball 1 / 2",
+                             " / ".join(fmt(x, "mm") for x in t["centre_distances_mm"])])
+            if "diameter_errors_mm" in t:
+                rows.append(["", "diameters − true diameter, ball 1 / 2",
+                             " / ".join(fmt(x, "mm", signed=True) for x in t["diameter_errors_mm"])])
         elif art == "freeform":
             na = t.get("nominal_alignment")
             if na:

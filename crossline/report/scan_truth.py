@@ -85,7 +85,8 @@ def _speckle_limit(centre: dict, truth: dict, points: Path,
 
 # figures compared with the truth that have a Monte Carlo U: error key in the scan's truth ->
 # the uncertainty's figure
-COVERED = {"mean_error_mm": "mean_mm", "diameter_error_mm": "diameter_mm"}
+COVERED = {"mean_error_mm": "mean_mm", "diameter_error_mm": "diameter_mm",
+           "length_error_mm": "length_mm"}
 
 
 def uncertainty_coverage(truth: dict[str, Any], figures: dict[str, Any]) -> dict[str, Any]:

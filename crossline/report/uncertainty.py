@@ -42,6 +42,7 @@ __all__ = [
     "CONTRIBUTORS",
     "CalibrationModel",
     "ScanPoints",
+    "ball_bar_figures",
     "calibration_model",
     "draw_calibration",
     "gauge_figures",
@@ -269,6 +270,24 @@ def plane_figures(r: Any, band_mm: float) -> Figures:
     return figures
 
 
+def _sphere_from(p: np.ndarray, w: np.ndarray, x0: np.ndarray) -> np.ndarray:
+    """The weighted geometric least-squares sphere (centre, radius) of points ``p``, by
+    Gauss-Newton from ``x0``: a draw moves the report's sphere by microns, so a few steps
+    reach it to far below them."""
+    x = np.array(x0, dtype=np.float64)
+    for _ in range(GN_STEPS):
+        dv = p - x[:3]
+        dist = np.linalg.norm(dv, axis=1)
+        J = np.column_stack([-dv / dist[:, None], -np.ones(len(p))])
+        r = dist - x[3]
+        Jw = J * w[:, None]
+        step = np.linalg.solve(Jw.T @ J, -(Jw.T @ r))
+        x += step
+        if np.max(np.abs(step)) < 1e-9:
+            break
+    return x
+
+
 def sphere_figures(s: Any, subset: np.ndarray | None = None) -> Figures:
     """The ball's diameter and form error on the report's inliers (geometric fit, weighted);
     ``subset`` (indices), if given, the points the figures are evaluated on."""
@@ -277,19 +296,7 @@ def sphere_figures(s: Any, subset: np.ndarray | None = None) -> Figures:
 
     def figures(P: np.ndarray, w: np.ndarray) -> dict[str, float]:
         p, wi = P[inl], w[inl]
-        x = x0.copy()
-        # Gauss-Newton from the report's sphere: a draw moves it by microns, so a few steps
-        # reach the geometric least-squares sphere to far below them
-        for _ in range(GN_STEPS):
-            dv = p - x[:3]
-            dist = np.linalg.norm(dv, axis=1)
-            J = np.column_stack([-dv / dist[:, None], -np.ones(len(p))])
-            r = dist - x[3]
-            Jw = J * wi[:, None]
-            step = np.linalg.solve(Jw.T @ J, -(Jw.T @ r))
-            x += step
-            if np.max(np.abs(step)) < 1e-9:
-                break
+        x = _sphere_from(p, wi, x0)
         keep = wi > 0
         r = (np.linalg.norm(p - x[:3], axis=1) - x[3])[keep]
         ww = wi[keep]
@@ -301,6 +308,20 @@ def sphere_figures(s: Any, subset: np.ndarray | None = None) -> Figures:
                 "form_error_d95_mm": float(r95.max() - r95.min()),
                 "form_error_vdi_mm": float(r997.max() - r997.min()),
                 "form_error_p95_mm": float(hi - lo)}
+
+    return figures
+
+
+def ball_bar_figures(b: Any, subset: np.ndarray | None = None) -> Figures:
+    """The ball bar's centre distance on the report's inliers of each ball (geometric fits,
+    weighted); ``b`` the report's :class:`~crossline.report.artefacts.BallBarResult`."""
+    inls = [np.flatnonzero(s.inlier_mask if subset is None else s.inlier_mask[subset])
+            for s in b.balls]
+    x0s = [np.r_[s.centre, s.radius] for s in b.balls]
+
+    def figures(P: np.ndarray, w: np.ndarray) -> dict[str, float]:
+        c1, c2 = (_sphere_from(P[i], w[i], x0)[:3] for i, x0 in zip(inls, x0s, strict=True))
+        return {"length_mm": float(np.linalg.norm(c1 - c2))}
 
     return figures
 
