@@ -1,0 +1,286 @@
+"""Where the A and B stripes of a scan cross: the gaps the pose refinement is fitted to.
+
+``find_crossings`` orders the points by stripe (``_stripes``), seeds each pair of an A and a
+B stripe at their closest points, fits both stripes locally by quadratic curves
+(``_curves``) and takes the closest approach of the two curves (``_closest``): the crossing
+point, its normal and the gap along it, in a :class:`Crossings`; ``usable_centres`` says
+which centres may make crossings at all. Split from ``crossline.scan.refine`` (issue 21.3),
+which re-exports these names.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["Crossings", "find_crossings", "usable_centres"]
+
+HALF_MM = 0.6  # stripe fitted either side of a crossing, mm
+MIN_ANGLE_DEG = 30.0  # stripes crossing at a smaller angle are not used
+MIN_SPACINGS = 6  # a crossing's stripe curves reach at least this many point spacings either side
+_QUERY_ROWS = 500_000  # seeds searched for B neighbours at a time
+MAX_WIDTH_RATIO = 2.0  # centres of column cuts longer than this x their laser's median: no crossings
+
+
+@dataclass(frozen=True)
+class Crossings:
+    """Where an A stripe of one frame crosses a B stripe of another (K crossings)."""
+
+    frame_a: np.ndarray  # (K,) index into the refinement's frames of the A stripe's frame
+    frame_b: np.ndarray  # (K,) likewise for the B stripe
+    x: np.ndarray  # (K, 3) crossing point, base frame
+    n: np.ndarray  # (K, 3) unit surface normal (A tangent x B tangent), towards the camera
+    gap: np.ndarray  # (K,) A curve minus B curve along n, mm
+    # (K,) the gap's noise per unit point noise: root of the two fits' prediction variances
+    sigma: np.ndarray
+    angle: np.ndarray  # (K,) crossing angle between the stripes, rad
+    counts: dict[str, int] = field(default_factory=dict)  # candidates lost at each step
+
+
+def usable_centres(laser: np.ndarray, width: np.ndarray,
+                   max_ratio: float = MAX_WIDTH_RATIO) -> np.ndarray:
+    """Centres (N,) bool whose column cut is at most ``max_ratio`` x their laser's median cut.
+
+    A cut much longer than its laser's typical one crosses the stripe where it runs steeply
+    through the column (or two stripes merged), and a centre fitted along the column is
+    biased there, several times more than the centres of shorter cuts
+    (``python benchmarks/bench_refine_bias.py`` prints the centres' mean and RMS error in px,
+    along the column, against the true centre line by cut length). The Gaussian extractor's
+    fit across steep stripes (``stripes.fit_across``) removes most of that bias, and with it
+    this filter hardly changes the refined ball (docs/method.md, pose refinement); it stays
+    for the other extractors and for merged stripes. Such centres may still be measured
+    points, but must not decide a crossing. ``max_ratio`` 0 (or inf) keeps all; a NaN width is kept.
+    """
+    lab = np.asarray(laser)
+    w = np.asarray(width, dtype=np.float64)
+    keep = np.ones(len(w), bool)
+    if not max_ratio or not np.isfinite(max_ratio):
+        return keep
+    for code in np.unique(lab):
+        sel = lab == code
+        known = sel & np.isfinite(w)
+        if known.any():
+            keep[sel] = ~(w[sel] > max_ratio * np.median(w[known]))
+    return keep
+
+
+def _stripes(frame_pos: np.ndarray, laser: np.ndarray, p: np.ndarray):
+    """Order points by stripe (frame, laser), then along the stripe's principal direction.
+
+    Returns the order (N,), stripe id of each ordered point, and per stripe its start and end
+    in the ordered arrays.
+    """
+    key = frame_pos.astype(np.int64) * 4 + laser.astype(np.int64)
+    ukey, sid, cnt = np.unique(key, return_inverse=True, return_counts=True)
+    del key
+    S = len(ukey)
+    mean = np.stack([np.bincount(sid, p[:, i], S) for i in range(3)], 1) / cnt[:, None]
+    # one centred column at a time: (N, 3) temporaries cost a long scan 24 B a point each
+    q = [p[:, i] - mean[sid, i] for i in range(3)]
+    C = np.empty((S, 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            C[:, i, j] = C[:, j, i] = np.bincount(sid, q[i] * q[j], S)
+    axis = np.linalg.eigh(C)[1][:, :, 2]
+    along = q[0] * axis[sid, 0]
+    for i in (1, 2):
+        along += q[i] * axis[sid, i]
+    del q
+    order = np.lexsort((along, sid))
+    start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
+    return order, sid[order], start, start + cnt
+
+
+def _curves(p: np.ndarray, seeds: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+            half_mm: float, width: int):
+    """Quadratic space curves x(s) = c0 + c1 s + c2 s^2 fitted along a stripe around each seed.
+
+    ``p`` are the ordered points, ``seeds`` positions in it, ``lo``/``hi`` the stripe's
+    bounds; the window is the stripe's points within ``half_mm`` (3-D) of the seed among the
+    ``width`` neighbours either side in stripe order; ``s`` is the distance along the
+    window's principal direction. Returns c (K, 3, 3) with rows c0, c1, c2, the inverse
+    normal matrix (K, 3, 3) (the prediction variance of the fit) and whether it is usable
+    (enough points, on both sides of the seed).
+    """
+    off = np.arange(-width, width + 1)
+    idx = seeds[:, None] + off[None, :]
+    inside = (idx >= lo[:, None]) & (idx < hi[:, None])
+    idx = np.clip(idx, lo[:, None], hi[:, None] - 1)
+    d = p[idx] - p[seeds][:, None, :]  # (K, W, 3), relative to the seed for conditioning
+    m = inside & (np.sum(d * d, axis=2) <= half_mm * half_mm)
+    w = m.astype(np.float64)
+    n = w.sum(1)
+    mu = np.matmul(w[:, None, :], d)[:, 0] / np.maximum(n, 1)[:, None]
+    dq = (d - mu[:, None, :]) * w[:, :, None]
+    t0 = np.linalg.eigh(np.matmul(np.swapaxes(dq, 1, 2), dq))[1][:, :, 2]
+    s = np.matmul(d, t0[:, :, None])[:, :, 0]
+    M = np.stack([w, s * w, s * s * w], axis=2)  # (K, W, 3), masked rows are zero
+    A = np.matmul(np.swapaxes(M, 1, 2), M)
+    s_in = np.where(m, s, np.nan)
+    with np.errstate(all="ignore"):
+        ok = (n >= 8) & (np.nanmin(s_in, 1) < -0.4 * half_mm) & (np.nanmax(s_in, 1) > 0.4 * half_mm)
+    A[~ok] = np.eye(3)
+    Ainv = np.linalg.inv(A)
+    c = np.matmul(Ainv, np.matmul(np.swapaxes(M, 1, 2), d))
+    c[:, 0, :] += p[seeds]
+    return c, Ainv, ok
+
+
+def _closest(ca: np.ndarray, cb: np.ndarray, iters: int = 5):
+    """Closest points of pairs of quadratic curves (Gauss-Newton from s = r = 0)."""
+    K = len(ca)
+    s = np.zeros(K)
+    r = np.zeros(K)
+    for _ in range(iters):
+        xa = ca[:, 0] + s[:, None] * ca[:, 1] + (s * s)[:, None] * ca[:, 2]
+        xb = cb[:, 0] + r[:, None] * cb[:, 1] + (r * r)[:, None] * cb[:, 2]
+        ta = ca[:, 1] + 2 * s[:, None] * ca[:, 2]
+        tb = cb[:, 1] + 2 * r[:, None] * cb[:, 2]
+        d = xa - xb
+        J = np.stack([ta, -tb], axis=2)  # (K, 3, 2)
+        JtJ = np.einsum("kia,kib->kab", J, J)
+        det = JtJ[:, 0, 0] * JtJ[:, 1, 1] - JtJ[:, 0, 1] ** 2
+        g = np.einsum("kia,ki->ka", J, d)
+        safe = np.abs(det) > 1e-12
+        det = np.where(safe, det, 1.0)
+        ds = (JtJ[:, 1, 1] * g[:, 0] - JtJ[:, 0, 1] * g[:, 1]) / det
+        dr = (JtJ[:, 0, 0] * g[:, 1] - JtJ[:, 0, 1] * g[:, 0]) / det
+        s = np.where(safe, s - ds, s)
+        r = np.where(safe, r - dr, r)
+    xa = ca[:, 0] + s[:, None] * ca[:, 1] + (s * s)[:, None] * ca[:, 2]
+    xb = cb[:, 0] + r[:, None] * cb[:, 1] + (r * r)[:, None] * cb[:, 2]
+    ta = ca[:, 1] + 2 * s[:, None] * ca[:, 2]
+    tb = cb[:, 1] + 2 * r[:, None] * cb[:, 2]
+    return s, r, xa, xb, ta, tb
+
+
+def find_crossings(
+    frame_pos: np.ndarray,
+    laser: np.ndarray,
+    points: np.ndarray,
+    viewpoints: np.ndarray,
+    *,
+    half_mm: float = HALF_MM,
+    radius_mm: float | None = None,
+    min_angle_deg: float = MIN_ANGLE_DEG,
+    threads: int = 1,
+) -> Crossings:
+    """Every crossing of an A stripe with a B stripe (of any frame, the same one included).
+
+    ``frame_pos`` (N,) is each point's frame as an index 0..F-1, ``laser`` (N,) its laser
+    code (1 = A, 2 = B), ``viewpoints`` (F, 3) the camera centre of each frame (orients the
+    normals). Candidates are A points (every other one along the stripe) with a B point
+    within ``radius_mm`` (default: 3 point spacings, at least 0.1 mm and one spacing of the
+    sparser laser); each pair of stripes keeps its closest candidate per 2 mm cell, the two
+    stripes are fitted locally by quadratic curves over ``half_mm`` either side (at least
+    ``MIN_SPACINGS`` of that laser's point spacings) and the crossing is the closest approach
+    of the two curves; it is kept if it lies within half a window of both seeds, the
+    stripes cross at ``min_angle_deg`` or more and the gap is under ``radius_mm``.
+    """
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(points, dtype=np.float64)
+    fp = np.asarray(frame_pos, dtype=np.int64)
+    lab = np.asarray(laser, dtype=np.int64)
+    order, sid, start, end = _stripes(fp, lab, p)
+    # a long scan's per-point arrays in the narrowest type that holds them (tens of millions
+    # of points: each int64 array is 8 B a point)
+    small = len(p) < 2**31 and (len(fp) == 0 or int(fp.max()) < 2**31)
+    itype = np.int32 if small else np.int64
+    order, sid = order.astype(itype), sid.astype(itype)
+    po, fo, lo_ = p[order], fp[order].astype(itype), lab[order].astype(np.int8)
+    del order
+    a = np.flatnonzero(lo_ == 1).astype(itype)
+    b = np.flatnonzero(lo_ == 2).astype(itype)
+    empty = Crossings(*(np.zeros(0, np.int64),) * 2, np.zeros((0, 3)), np.zeros((0, 3)),
+                      np.zeros(0), np.zeros(0), np.zeros(0))
+    if len(a) < 8 or len(b) < 8:
+        return empty
+    # distance between neighbours in the order, a column at a time (no (N, 3) temporaries)
+    step = np.diff(po[:, 0]) ** 2
+    for i in (1, 2):
+        step += np.diff(po[:, i]) ** 2
+    np.sqrt(step, out=step)
+    along = sid[1:] == sid[:-1]
+    spacing = float(np.median(step[along])) if along.any() else 0.05
+    # each laser's own point spacing (mm, between neighbouring points of a stripe): a
+    # stripe that runs steeply through the image, or meets the surface at a grazing angle,
+    # is sampled more sparsely than the other, by a factor of a few on some rigs
+    # (docs/method.md, pose refinement)
+    sp = {}
+    for code in (1, 2):
+        m = along & (lo_[1:] == code)
+        sp[code] = float(np.median(step[m])) if m.any() else spacing
+    if radius_mm is None:
+        radius_mm = max(0.1, 3.0 * spacing, sp[1], sp[2])
+    # a quadratic needs its points: where a stripe is sampled sparsely (a camera of coarse
+    # resolution, or the steeper laser) its window grows to MIN_SPACINGS of them either side,
+    # else a HALF_MM window holds too few and no crossing of such a rig is ever fitted
+    half = {code: max(half_mm, MIN_SPACINGS * sp[code]) for code in (1, 2)}
+    tree = cKDTree(po[b])
+    # every other A point is enough to seed: the crossing itself is found by the curve fits
+    a = a[::2]
+    ia_, ib_, dd_ = [], [], []
+    for c0 in range(0, len(a), _QUERY_ROWS):  # in blocks: k distances a row are 64 B
+        ac = a[c0:c0 + _QUERY_ROWS]
+        dist, jj = tree.query(po[ac], k=4, distance_upper_bound=radius_mm, workers=threads)
+        hit = np.isfinite(dist)
+        ia_.append(np.broadcast_to(ac[:, None], dist.shape)[hit].astype(np.int64))
+        ib_.append(b[jj[hit]].astype(np.int64))
+        dd_.append(dist[hit])
+    del tree
+    ia, ib, dd = np.concatenate(ia_), np.concatenate(ib_), np.concatenate(dd_)
+    if len(ia) == 0:
+        return empty
+    # one seed per stripe pair and 2 mm cell: the closest A-B point pair there
+    cell = np.floor(po[ia] / 2.0).astype(np.int64)
+    cell -= cell.min(0)
+    dims = cell.max(0) + 1
+    ck = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+    pair = sid[ia].astype(np.int64) * (sid.max() + 1) + sid[ib]
+    o = np.lexsort((dd, ck, pair))
+    first = np.ones(len(o), bool)
+    first[1:] = (pair[o][1:] != pair[o][:-1]) | (ck[o][1:] != ck[o][:-1])
+    ia, ib = ia[o[first]], ib[o[first]]
+    # window slots either side: the half-length in median point spacings, with room for
+    # sparser stretches and for a second segment of the stripe interleaved in the order
+    width = {code: int(np.clip(np.ceil(1.6 * half[code] / max(min(spacing, sp[code]), 1e-3)), 8, 200))
+             for code in (1, 2)}
+    ca, Ainv_a, ok_a = _curves(po, ia, start[sid[ia]], end[sid[ia]], half[1], width[1])
+    cb, Ainv_b, ok_b = _curves(po, ib, start[sid[ib]], end[sid[ib]], half[2], width[2])
+    ok = ok_a & ok_b
+    ia, ib, ca, cb, Ainv_a, Ainv_b = ia[ok], ib[ok], ca[ok], cb[ok], Ainv_a[ok], Ainv_b[ok]
+    s, r, xa, xb, ta, tb = _closest(ca, cb)
+    nrm = np.cross(ta, tb)
+    sin = np.linalg.norm(nrm, axis=1) / np.maximum(
+        np.linalg.norm(ta, axis=1) * np.linalg.norm(tb, axis=1), 1e-300)
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+    x = 0.5 * (xa + xb)
+    fa, fb = fo[ia], fo[ib]
+    view = np.asarray(viewpoints, dtype=np.float64)[fa] - x
+    nrm *= np.where(np.sum(nrm * view, axis=1) < 0, -1.0, 1.0)[:, None]
+    gap = np.sum((xa - xb) * nrm, axis=1)
+    lev_a = np.einsum("ka,kab,kb->k", np.stack([np.ones_like(s), s, s * s], 1), Ainv_a,
+                      np.stack([np.ones_like(s), s, s * s], 1))
+    lev_b = np.einsum("ka,kab,kb->k", np.stack([np.ones_like(r), r, r * r], 1), Ainv_b,
+                      np.stack([np.ones_like(r), r, r * r], 1))
+    keep = ((np.abs(s) <= 0.5 * half[1]) & (np.abs(r) <= 0.5 * half[2])
+            & (sin >= np.sin(np.radians(min_angle_deg))) & (np.abs(gap) <= radius_mm))
+    # the same crossing found from two cells: keep the one whose seeds were closest to it
+    k = np.flatnonzero(keep)
+    pr = (sid[ia[k]].astype(np.int64) * (sid.max() + 1) + sid[ib[k]])
+    o = np.lexsort((np.abs(s[k]) + np.abs(r[k]), pr))
+    k, pr = k[o], pr[o]
+    dup = np.zeros(len(k), bool)
+    for lag in (1, 2, 3):
+        same = pr[lag:] == pr[:-lag]
+        close = np.linalg.norm(x[k[lag:]] - x[k[:-lag]], axis=1) < 2 * max(half[1], half[2])
+        dup[lag:] |= same & close & ~dup[:-lag]
+    k = np.sort(k[~dup])
+    # how many candidates survive each step, for the stats: seeds (closest A-B point pairs),
+    # both curve fits usable, crossing inside both windows at a fair angle, not a duplicate
+    counts = {"seeds": len(ok), "fitted": int(ok.sum()), "kept": int(keep.sum()), "unique": len(k)}
+    return Crossings(fa[k].astype(np.int64), fb[k].astype(np.int64), x[k], nrm[k], gap[k],
+                     np.sqrt(lev_a[k] + lev_b[k]),
+                     np.arcsin(np.clip(sin[k], 0, 1)), counts)

@@ -1,0 +1,135 @@
+"""The MAP solve of every frame's pose error from the crossings' gaps.
+
+``solve_errors``: one scalar per crossing against 6 unknowns per frame and the A-minus-B
+offset, the prior of :mod:`crossline.scan.refine_prior`, robust (Huber) weights re-estimated
+a few times; dense Cholesky on the seen frames up to ``DENSE_MAX_FRAMES`` frames, sparse LU
+on the banded augmented form beyond. Split from ``crossline.scan.refine`` (issue 21.3),
+which re-exports these names.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from crossline.report.fitting import robust_sigma
+from crossline.scan.refine_crossings import Crossings
+from crossline.scan.refine_prior import ArmPrior, _prior_sparse, prior_covariance
+
+__all__ = ["solve_errors"]
+
+DENSE_MAX_FRAMES = 800  # up to here the normal equations are solved dense (6F unknowns)
+MIN_GAP_SIGMA_MM = 1e-4  # the best a crossing's gap is ever taken to be known (0.1 µm)
+
+
+def solve_errors(
+    cr: Crossings,
+    origins: np.ndarray,
+    prior: ArmPrior,
+    times: np.ndarray | None = None,
+    *,
+    huber: float = 2.0,
+    reject: float = 5.0,
+    max_iter: int = 6,
+    dense: bool | None = None,
+) -> tuple[np.ndarray, float, dict[str, Any]]:
+    """MAP pose errors (F, 6) = (ω, t) per frame from the crossings, and the A-minus-B offset β.
+
+    Unknowns are scaled by the prior sigmas. The noise of each crossing is its curve-fit
+    prediction variance times one global scale, estimated robustly (MAD) from the residuals
+    at each iteration; residuals beyond ``huber`` scaled sigmas get Huber weights, beyond
+    ``reject`` none. ``dense`` (default: up to ``DENSE_MAX_FRAMES`` frames) solves the
+    normal equations by dense Cholesky, otherwise sparse LU on the banded augmented form.
+    """
+    import scipy.linalg as sla
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    F = len(origins)
+    K = len(cr.gap)
+    sig = prior.sigmas()
+    info: dict[str, Any] = {"crossings": K}
+    if K == 0:
+        return np.zeros((F, 6)), 0.0, {**info, "iterations": 0, "used": 0, "rejected": 0}
+    dense = F <= DENSE_MAX_FRAMES if dense is None else dense
+    if dense:
+        # only frames that some crossing sees are unknowns: the prior of the others is
+        # marginalised out (a Gaussian's marginal is the sub-block of its covariance) and
+        # their errors are predicted afterwards from the solved ones
+        seen = np.zeros(F, bool)
+        seen[cr.frame_a] = True
+        seen[cr.frame_b] = True
+        cov = prior_covariance(times, prior, F)
+        obs = np.flatnonzero(seen)
+        lam = sla.cho_solve(sla.cho_factor(cov[np.ix_(obs, obs)]), np.eye(len(obs)))
+        col = np.full(F, -1)
+        col[obs] = np.arange(len(obs))
+        nu = 6 * len(obs)
+        P = np.zeros((nu + 1, nu + 1))
+        P[:nu, :nu] = np.kron(lam, np.eye(6))  # frame-major: unknown f * 6 + axis
+    else:
+        col = np.arange(F)
+        L, nu = _prior_sparse(times, prior, F)
+        P = sp.block_diag([(L.T @ L), sp.csr_matrix((1, 1))]).tocsc()
+    beta_info = 1e-6  # the A-minus-B offset is nearly free (a 1000-sigma prior)
+    # Jacobian of the gap: n·(ω_f × (x − o_f) + t_f) − n·(ω_g × (x − o_g) + t_g); on
+    # same-frame crossings the two cancel and only beta is seen
+    ja = np.hstack([np.cross(cr.x - origins[cr.frame_a], cr.n), cr.n]) * sig
+    jb = np.hstack([np.cross(cr.x - origins[cr.frame_b], cr.n), cr.n]) * sig
+    rows = np.repeat(np.arange(K), 6)
+    J = sp.csr_matrix(
+        (np.concatenate([ja.ravel(), -jb.ravel(), np.ones(K)]),
+         (np.concatenate([rows, rows, np.arange(K)]),
+          np.concatenate([(col[cr.frame_a][:, None] * 6 + np.arange(6)).ravel(),
+                          (col[cr.frame_b][:, None] * 6 + np.arange(6)).ravel(), np.full(K, nu)]))),
+        shape=(K, nu + 1),
+    )
+    s0 = np.maximum(cr.sigma, np.median(cr.sigma) * 0.5)
+    # no crossing is known better than MIN_GAP_SIGMA_MM: on perfect data the scale would go to
+    # zero and the data outweigh the prior by so much that the normal equations lose the
+    # unobservable directions to rounding
+    floor = MIN_GAP_SIGMA_MM / float(np.median(s0))
+    w = np.ones(K)
+    scale = max(robust_sigma(cr.gap) / float(np.median(s0)), floor)
+    z = np.zeros(nu + 1)
+    iterations = 0
+    for iterations in range(1, max_iter + 1):  # noqa: B007 (the count is reported)
+        wi = w / (scale * s0) ** 2
+        JtW = J.T.multiply(wi[None, :]).tocsr()
+        g = JtW @ cr.gap
+        if dense:
+            H = (JtW @ J).toarray() + P
+            H[nu, nu] += beta_info
+            z_new = sla.cho_solve(sla.cho_factor(H, check_finite=False), g, check_finite=False)
+        else:
+            H = (JtW @ J + P).tolil()
+            H[nu, nu] += beta_info
+            z_new = splu(H.tocsc(), permc_spec="MMD_AT_PLUS_A").solve(g)
+        res = (cr.gap - J @ z_new) / s0
+        new_scale = max(1.4826 * float(np.median(np.abs(res[w > 0]))), floor)
+        u = np.abs(res) / new_scale
+        w_new = np.where(u <= huber, 1.0, np.where(u <= reject, huber / np.maximum(u, 1e-300), 0.0))
+        # converged: the unknowns moved by less than a twentieth of their prior sigma
+        done = float(np.max(np.abs(z_new - z))) < 0.05 and np.array_equal(w_new > 0, w > 0)
+        z, w, scale = z_new, w_new, new_scale
+        if done:
+            break
+    if dense:
+        a = np.zeros((F, 6))
+        a[obs] = z[:nu].reshape(-1, 6)
+        # the unseen frames: their conditional mean given the seen ones, C_uo C_oo^-1 a_o
+        a[~seen] = cov[np.ix_(~seen, obs)] @ (lam @ a[obs])
+    else:
+        a = z[: 6 * F].reshape(F, 6)
+    e = a * sig
+    res_mm = cr.gap - J @ z
+    used = w > 0
+    info.update(
+        iterations=iterations, used=int(used.sum()), rejected=int((~used).sum()),
+        solver="dense" if dense else "sparse",
+        noise_scale=scale,
+        gap_rms_before_mm=float(np.sqrt(np.mean((cr.gap[used] - z[nu]) ** 2))),
+        gap_rms_after_mm=float(np.sqrt(np.mean(res_mm[used] ** 2))),
+    )
+    return e, float(z[nu]), info
