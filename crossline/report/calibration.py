@@ -171,10 +171,10 @@ def _validation_depths(given: Any, truth: dict, true_cam: Any,
 
 def _point_depths(points: Path, most: int = 200_000) -> np.ndarray:
     """Depths (z in the camera frame, mm) of a scan's points, an even subsample of ``most``."""
-    import pyarrow.parquet as pq
+    from crossline.io.columns import read_columns
 
     try:
-        z = pq.read_table(points, columns=["z_cam"]).column("z_cam").to_numpy()
+        z = read_columns(points, ["z_cam"])["z_cam"]
     except (KeyError, ValueError, OSError):  # an older points file without camera coordinates
         return np.empty(0)
     step = max(1, len(z) // most)

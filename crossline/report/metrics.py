@@ -148,9 +148,11 @@ def compare_lasers(
         # define no plane: refuse rather than report a meaningless offset
         if m.sum() < MIN_POINTS:
             return False
-        q = p[m] - p[m].mean(0)
-        s = np.linalg.svd(q[:: max(1, len(q) // 20000)], compute_uv=False) / np.sqrt(
-            len(q[:: max(1, len(q) // 20000)]))
+        # the spread from every k-th point (about 20 000): no copies of a long scan's points
+        idx = np.flatnonzero(m)
+        q = p[idx[:: max(1, len(idx) // 20000)]]
+        q = q - q.mean(0)
+        s = np.linalg.svd(q, compute_uv=False) / np.sqrt(len(q))
         if s[axis] < min_spread_mm:
             shape = "along a line" if axis == 1 else "in one plane"
             raise ValueError(f"laser points on the {what} lie {shape} ({s[axis]:.3g} mm wide): "

@@ -105,6 +105,7 @@ def _load_scan(
     import pandas as pd
 
     from crossline.fuse import read_ply
+    from crossline.io.columns import read_columns
 
     sd = ScanData(name, spec.artefact, dict(spec.nominal), mesh=getattr(spec, "mesh", None),
                   T_base_nominal=getattr(spec, "T_base_nominal", None))
@@ -125,10 +126,9 @@ def _load_scan(
         sd.points_path = pq
         files.append(("interim", f"points/{name}.parquet", pq))
         try:
-            df = pd.read_parquet(pq, columns=["frame", "laser"])
-            sd.point_frames = df["frame"].to_numpy(np.int64)
-            lab = df["laser"].astype(str)
-            sd.point_lasers = np.select([lab == "A", lab == "B"], [1, 2], 0).astype(np.uint8)
+            cols = read_columns(pq, ["frame", "laser"])
+            sd.point_frames = cols["frame"].astype(np.int64, copy=False)
+            sd.point_lasers = cols["laser"]
         except Exception as exc:  # pyarrow raises several types for broken files
             log.warning("%s: unreadable (%s)", pq, exc)
     side = interim / "points" / f"{name}.json"
@@ -145,11 +145,10 @@ def _load_scan(
             log.warning("%s: unreadable (%s)", ply, exc)
     if sd.cloud is None and pq.is_file():
         try:
-            df = pd.read_parquet(pq, columns=["x", "y", "z", "laser", "frame"])
-            codes = np.select([df["laser"].astype(str) == "A", df["laser"].astype(str) == "B"],
-                              [1, 2], 0).astype(np.uint8)
-            sd.cloud = {"points": df[["x", "y", "z"]].to_numpy(np.float64), "laser": codes,
-                        "frame": df["frame"].to_numpy(np.int64)}
+            cols = read_columns(pq, ["x", "y", "z", "laser", "frame"])
+            sd.cloud = {"points": np.column_stack([cols.pop(k) for k in ("x", "y", "z")]).astype(
+                np.float64, copy=False), "laser": cols["laser"],
+                "frame": cols["frame"].astype(np.int64, copy=False)}
             sd.cloud_source = f"points/{name}.parquet (no fused cloud)"
         except Exception as exc:
             log.warning("%s: no usable points (%s)", pq, exc)

@@ -49,8 +49,7 @@ def _speckle_limit(centre: dict, truth: dict, points: Path,
     from the rig's optics in truth.json), the same after the centre lines' smoothing
     (``smooth_px`` columns, as if the columns' speckle were independent: the lower end), the
     centres' achieved robust sigma against the true lines, and its ratio to each."""
-    import pandas as pd
-
+    from crossline.io.columns import LASER_CODES, read_columns
     from crossline.report.speckle import centre_bound_px, smoothing_gain
 
     sensor, cam = truth.get("sensor") or {}, truth.get("camera") or {}
@@ -58,14 +57,16 @@ def _speckle_limit(centre: dict, truth: dict, points: Path,
     if not (pitch and fno and cam.get("K") and centre):
         return None
     try:
-        z = pd.read_parquet(points, columns=["laser", "z_cam"])
-    except Exception:  # an older points file without camera coordinates
+        z = read_columns(points, ["laser", "z_cam"])
+    except Exception:  # pyarrow raises several types for broken files
+        return None
+    if "z_cam" not in z or "laser" not in z:  # an older points file without camera coordinates
         return None
     fx = float(cam["K"][0][0])
     out: dict[str, Any] = {}
     for name, ce in centre.items():
         las = (truth.get("lasers") or {}).get(name) or {}
-        zl = z["z_cam"][z["laser"] == name].to_numpy(np.float64)
+        zl = z["z_cam"][z["laser"] == LASER_CODES.get(name, -1)].astype(np.float64)
         if not (las.get("speckle_contrast") is not None and las.get("wavelength_nm") and zl.size):
             continue
         # magnification at the points' median depth: f / z, f = fx * pitch

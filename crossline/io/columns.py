@@ -1,0 +1,59 @@
+"""Columns of a stage's parquet table as numpy arrays, read row group by row group.
+
+A long scan's points file holds tens of millions of rows: read through pandas, each string
+column becomes a column of Python objects (hundreds of bytes a row), and pyarrow's memory
+pool keeps what a whole-table read allocated long after it is freed. ``read_columns`` fills
+preallocated arrays one row group at a time (the pool's high-water mark is one group), and
+turns the ``laser`` labels into uint8 codes (1 = A, 2 = B, 0 = anything else) without
+making strings of them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["LASER_CODES", "laser_codes_of", "read_columns"]
+
+LASER_CODES = {"A": 1, "B": 2}  # 0: no laser, or one the rig does not have
+
+
+def laser_codes_of(column) -> np.ndarray:
+    """uint8 codes (1 = A, 2 = B, 0 = other or null) of a pyarrow array of laser labels."""
+    import pyarrow.compute as pc
+
+    lab = column.cast("string")
+    out = np.zeros(len(lab), dtype=np.uint8)
+    for name, code in LASER_CODES.items():
+        out[np.asarray(pc.equal(lab, name).fill_null(False))] = code
+    return out
+
+
+def read_columns(path: str | Path, columns: Sequence[str]) -> dict[str, np.ndarray]:
+    """The named columns of a parquet file (those it has) as 1-D arrays of its rows.
+
+    ``laser`` comes as :func:`laser_codes_of` codes; every other column in its own dtype.
+    Raises what pyarrow raises for a file that is not parquet (callers name the file).
+    """
+    import pyarrow.parquet as pq
+
+    f = pq.ParquetFile(path)
+    names = set(f.schema_arrow.names)
+    cols = [c for c in columns if c in names]
+    n = f.metadata.num_rows
+    out: dict[str, np.ndarray] = {}
+    k = 0
+    for g in range(f.num_row_groups):
+        t = f.read_row_group(g, columns=cols)
+        m = t.num_rows
+        for c in cols:
+            v = laser_codes_of(t[c]) if c == "laser" else t[c].to_numpy()
+            if c not in out:
+                out[c] = np.empty(n, dtype=v.dtype)
+            out[c][k:k + m] = v
+        k += m
+    for c in cols:
+        out.setdefault(c, np.empty(0))
+    return out
