@@ -69,6 +69,9 @@ def _simulate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--nominal-datum", action="store_true",
                    help="rig.yaml gives each freeform part's placement (nominal_pose), as probed "
                         "with the arm, with the arm's error")
+    p.add_argument("--ball-bar", action="store_true",
+                   help="add three scans of a ball bar (two balls at a known distance; "
+                        "ISO 10360-8 sphere-spacing error SD)")
     p.add_argument("--board", type=_board_spec, metavar="SPEC",
                    help="calibration board instead of the preset's: pattern:COLSxROWS:spacing"
                         "[:diameter[:dark|light]], e.g. chessboard:12x9:4 (inner corners, square mm) "
@@ -91,6 +94,7 @@ def _simulate(p: argparse.ArgumentParser) -> None:
             jpeg_quality=a.jpeg_quality, colour=a.colour, laser_always_on=a.laser_always_on,
             calibration_only=a.calibration_only, arm_noise_scale=a.arm_noise_scale, parts=parts,
             dent_mm=a.dent, dent_sigma_mm=a.dent_sigma, nominal_datum=a.nominal_datum,
+            ball_bar=a.ball_bar,
         )
         return 0
 

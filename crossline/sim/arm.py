@@ -4,10 +4,12 @@ Poses. The scanner's camera pose ``T_base_cam`` is chosen (looking at a target f
 distance, tilted, rolled); the arm's flange is then ``T_base_tool = T_base_cam @ inv(X)``
 with the rig's true hand-eye matrix ``X = T_tool_cam``.
 
-Scans sweep the scanner along a straight line over the artefact at a speed that varies by
-+-15 % (a hand-guided arm), with a slow wobble of the orientation (about 1.5 deg) around the
-camera's own axes, so that the poses are not a pure translation. The sweep runs along the
-image's u axis, or at ``-roll_deg`` to it when the scan rolls the camera about its axis.
+Scans sweep the scanner along a straight line over the artefact (level, or rising along an
+inclined artefact such as a tilted ball bar, which keeps it in the measuring range) at a
+speed that varies by +-15 % (a hand-guided arm), with a slow wobble of the orientation
+(about 1.5 deg) around the camera's own axes, so that the poses are not a pure translation.
+The sweep runs along the image's u axis, or at ``-roll_deg`` to it when the scan rolls the
+camera about its axis.
 
 Reported-pose error. The paper's arm has a stated precision of 0.02 mm. We read it as two
 standard deviations of the 3-D error of the flange position, so each axis has
@@ -122,14 +124,16 @@ def scan_trajectory(preset: RigPreset, spec: ScanSpec, aim: np.ndarray, n_frames
     h = np.radians(spec.heading_deg)
     sdir = np.array([np.cos(h), np.sin(h), 0.0])
     across = np.array([-np.sin(h), np.cos(h), 0.0])
-    target0 = aim + sdir * spec.sweep_offset_mm[0] + across * spec.sweep_offset_mm[1]
+    rise = np.radians(spec.sweep_incline_deg)
+    path = np.array([np.cos(h) * np.cos(rise), np.sin(h) * np.cos(rise), np.sin(rise)])
+    target0 = aim + path * spec.sweep_offset_mm[0] + across * spec.sweep_offset_mm[1]
     roll = np.radians(spec.roll_deg)
     R0 = view_rotation(tilted_down(spec.tilt_deg, spec.tilt_azimuth_deg), sdir, roll)
     wob = np.radians(spec.wobble_deg) * np.stack(
         [np.sin(2 * np.pi * 0.35 * tc + 0.3), np.sin(2 * np.pi * 0.27 * tc + 1.1),
          0.5 * np.sin(2 * np.pi * 0.41 * tc + 2.0)], axis=1)
     R = R0 @ rotvec_to_matrix(wob)
-    target = target0 + s[:, None] * sdir
+    target = target0 + s[:, None] * path
     eye = target - spec.distance_mm * R[:, :, 2]
     return times, make_transform(R, eye)
 

@@ -9,7 +9,8 @@ same seed gives byte-identical files.
 Options make the captures real rigs write (see ``simulate``): a one-laser rig, ADC data bits
 inside a 16-bit container, JPEG / TIFF / BMP files, a colour (Bayer) sensor
 (``crossline.sim.colour``), laser-plane poses with the laser always on, any subset of the
-parts (camera, lasers, handeye, scans), a noisier arm. ``truth.json`` then records them under
+parts (camera, lasers, handeye, scans), a noisier arm; a ball bar's three scans besides the
+rig's own (ISO 10360-8's sphere-spacing error). ``truth.json`` then records them under
 ``capture_options``; a random rig (``crossline.sim.random_rig``) its draw under ``rig_draw``.
 
 The code lives in modules beside this one (issue 21.3): ``capture_jobs`` (``Plan``,
@@ -47,7 +48,7 @@ from crossline.sim.capture_jobs import _model as _model
 from crossline.sim.capture_truth import _frame_table, _truth_json
 from crossline.sim.colour import CHANNELS, laser_wavelength
 from crossline.sim.part import part_mesh, write_ply, write_stl
-from crossline.sim.presets import PRESETS, RigPreset
+from crossline.sim.presets import PRESETS, RigPreset, ball_bar_scans
 from crossline.sim.random_rig import RANDOM_PRESETS, random_rig
 from crossline.sim.scenes import freeform_part, nominal_frame, scan_scene
 
@@ -106,6 +107,7 @@ def simulate(
     dent_mm: float | None = None,
     dent_sigma_mm: float = DENT_SIGMA_MM,
     nominal_datum: bool = False,
+    ball_bar: bool = False,
 ) -> Path:
     """Render a complete capture folder of a virtual rig at ``out``; return its path.
 
@@ -134,6 +136,9 @@ def simulate(
     (``nominal_pose``), as a user measures it by probing the part's datums with the arm: the
     true placement with a probing error drawn from the arm's precision (truth.json: the
     scan's ``nominal_pose_error``).
+    ``ball_bar``: three more scans, ``bar_1`` .. ``bar_3``, of a ball bar (two balls of the
+    rig's ball scan's diameter at a calibrated centre distance, for ISO 10360-8's
+    sphere-spacing error SD) in three positions (``crossline.sim.presets.ball_bar_scans``).
     """
     rig = _resolve(preset, int(seed))
     if board is not None:
@@ -198,6 +203,11 @@ def simulate(
         rig = dataclasses.replace(rig, scans=tuple(
             dataclasses.replace(sp, params={**sp.params, "dent": dent})
             if sp.artefact == "freeform" else sp for sp in rig.scans))
+    if ball_bar:
+        try:
+            rig = dataclasses.replace(rig, scans=rig.scans + ball_bar_scans(rig))
+        except ValueError as exc:
+            raise CrosslineError(f"ball bar: {exc}") from None
     parts = tuple(PARTS if parts is None else parts)
     unknown = sorted(set(parts) - set(PARTS))
     if unknown or not parts:
@@ -224,6 +234,8 @@ def simulate(
         options["jpeg_quality"] = int(jpeg_quality)
     if nominal_datum:
         options["nominal_datum"] = True
+    if ball_bar:
+        options["ball_bar"] = True
     if dent_mm is not None:
         options["dent_mm"] = float(dent_mm)
         options["dent_sigma_mm"] = float(dent_sigma_mm)
@@ -231,7 +243,8 @@ def simulate(
         [f"colour sensor, {colour} laser"] if colour else []) + (
         ["laser always on"] if laser_always_on else []) + (
         [f"arm noise x{arm_noise_scale:g}"] if arm_noise_scale != 1.0 else []) + (
-        [f"a {dent_mm:g} mm dent in the freeform part"] if dent_mm is not None else [])
+        [f"a {dent_mm:g} mm dent in the freeform part"] if dent_mm is not None else []) + (
+        ["a ball bar in three positions"] if ball_bar else [])
     if notes:
         rig = dataclasses.replace(rig, description=f"{rig.description}; {', '.join(notes)}")
     if out.exists():
@@ -318,6 +331,9 @@ def _render_all(rig: RigPreset, root: Path, seed: int, quick: bool, frames: int 
         if spec.name not in scan_names:
             continue
         n = frames or (rig.quick_frames if quick else spec.frames)
+        if quick and frames is None and spec.quick_frames is not None:
+            n = spec.quick_frames
+            spec = dataclasses.replace(spec, frames=n)  # its whole sweep, faster
         scene, truth, aim = scan_scene(rig, spec)
         times, T_base_cam = arm_mod.scan_trajectory(rig, spec, aim, n)
         T_tool_true = arm_mod.tool_from_cam(T_base_cam, X)
@@ -351,6 +367,8 @@ def _render_all(rig: RigPreset, root: Path, seed: int, quick: bool, frames: int 
                            "tilt_deg": spec.tilt_deg, "heading_deg": spec.heading_deg,
                            "aim_base": aim},
         }
+        if spec.sweep_incline_deg:
+            scan_truth[spec.name]["trajectory"]["incline_deg"] = spec.sweep_incline_deg
         if spec.artefact == "freeform":
             scan_truth[spec.name]["mesh"] = "truth/part.ply"
         scan_tables[spec.name] = []

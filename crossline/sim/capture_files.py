@@ -72,8 +72,10 @@ def _write_rig_yaml(path: Path, rig: RigPreset, bits: int, scan_names: list[str]
                 entry["nominal_pose"] = datums[spec.name]
         if spec.artefact == "gauge_block":
             entry["height"] = float(spec.params["height"])
-        if spec.artefact == "sphere":
+        if spec.artefact in ("sphere", "ball_bar"):
             entry["diameter"] = float(spec.params["diameter"])
+        if spec.artefact == "ball_bar":
+            entry["length"] = float(spec.params["length"])
         scans[spec.name] = entry
     sensor: dict[str, Any] = {"width": s.width, "height": s.height, "bit_depth": bits}
     if output.data_bits is not None:

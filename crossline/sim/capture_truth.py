@@ -18,18 +18,20 @@
   ``handeye[<image>]``: ``T_base_tool`` (true), ``T_cam_board``, ``error_position_mm``,
   ``error_rotation_rad`` (reported minus true);
 * ``scans.<name>``: the DESIGN.md keys (gauge: ``height``, ``plate_plane_base``,
-  ``top_plane_base``; plate: ``plane_base``; ball: ``diameter``, ``center_base``; part:
-  ``mesh`` = ``truth/part.ply``) plus ``centrelines`` (``truth/<scan>_centrelines.parquet``:
-  frame, laser, u (full-sensor column), v (full-sensor row, sub-pixel), x_cam, y_cam, z_cam
-  (the surface point on the sheet's centre plane), visible (= lit and unoccluded), lit,
-  unoccluded, surface (which primitive), cos_view and cos_incidence (cosines between the
-  surface normal and the directions to the camera and to the emitter: a stripe on a face seen
-  at grazing angle is visible but covers a sliver of a pixel)), ``poses``
-  (``truth/<scan>_poses.parquet``: frame, time_s, lasers, the true T_base_tool as x, y, z, qw,
-  qx, qy, qz, and the reported-minus-true errors err_x, err_y, err_z (mm, base) and err_rx,
-  err_ry, err_rz (rad, flange)), ``surfaces``, ``frames``, ``pattern``, ``trajectory`` and
-  ``render_stats``; gauge adds ``block`` (centre, axes, size), ball ``stem``, part ``design``
-  (the analytic surface) and ``mesh_triangles``.
+  ``top_plane_base``; plate: ``plane_base``; ball: ``diameter``, ``center_base``; part: ``mesh``
+  = ``truth/part.ply``; ball bar: ``diameter``, ``length``, ``centers_base`` (the two centres,
+  ``length`` apart), with ``direction_base``, ``yaw_deg``, ``incline_deg``, ``stems``) plus
+  ``centrelines`` (``truth/<scan>_centrelines.parquet``: frame, laser, u (full-sensor column), v
+  (full-sensor row, sub-pixel), x_cam, y_cam, z_cam (the surface point on the sheet's centre
+  plane), visible (= lit and unoccluded), lit, unoccluded, surface (which primitive), cos_view
+  and cos_incidence (cosines between the surface normal and the directions to the camera and to
+  the emitter: a stripe on a face seen at grazing angle is visible but covers a sliver of a
+  pixel)), ``poses`` (``truth/<scan>_poses.parquet``: frame, time_s, lasers, the true
+  T_base_tool as x, y, z, qw, qx, qy, qz, and the reported-minus-true errors err_x, err_y, err_z
+  (mm, base) and err_rx, err_ry, err_rz (rad, flange)), ``surfaces``, ``frames``, ``pattern``,
+  ``trajectory`` and ``render_stats`` (an inclined sweep's ``trajectory`` adds ``incline_deg``);
+  gauge adds ``block`` (centre, axes, size), ball ``stem``, part ``design`` (the analytic
+  surface) and ``mesh_triangles``.
 
 Split from ``crossline.sim.capture`` (issue 21.3), which re-exports the names its importers use.
 """

@@ -19,7 +19,9 @@ Radiometry is expressed in electrons collected by one pixel during one exposure:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+import zlib
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -35,6 +37,7 @@ __all__ = [
     "RigPreset",
     "ScanSpec",
     "SensorSpec",
+    "ball_bar_scans",
     "laser_from_abcd",
 ]
 
@@ -188,17 +191,21 @@ class ScanSpec:
     """One scan: the artefact on the table and how the arm sweeps the scanner over it."""
 
     name: str
-    artefact: str  # gauge_block | plane | sphere | freeform (rig.yaml)
+    artefact: str  # gauge_block | plane | sphere | freeform | ball_bar (rig.yaml)
     params: dict = field(default_factory=dict)  # artefact geometry (mm) and albedos
     distance_mm: float = 140.0  # camera to the aim point along the optical axis
     tilt_deg: float = 0.0  # optical axis away from straight down
     tilt_azimuth_deg: float = 0.0  # direction of the tilt in the table plane
     heading_deg: float = 0.0  # image x axis direction on the table (the sweep direction)
+    sweep_incline_deg: float = 0.0  # the sweep rises at this angle along its heading
     sweep_mm: float = 75.0  # length of the sweep
     sweep_offset_mm: tuple[float, float] = (0.0, 0.0)  # aim point shift: along, across sweep
     wobble_deg: float = 1.5  # slow hand rotation amplitude over the sweep
     frames: int = 300
     roll_deg: float = 0.0  # camera roll about its axis: the sweep runs at -roll in the image
+    # frames of a quick capture over the whole sweep (None: the rig's quick_frames over the
+    # sweep's middle at full speed, which would miss both balls of a ball bar)
+    quick_frames: int | None = None
 
 
 @dataclass(frozen=True)
@@ -406,3 +413,54 @@ COMPACT = RigPreset(
 )
 
 PRESETS: dict[str, RigPreset] = {"paper": PAPER, "compact": COMPACT}
+
+
+# ----------------------------------------------------------------------------- ball bar
+
+BAR_TURNS_DEG = (0.0, 60.0, 120.0)  # the bar's three yaws, from the ball scan's heading
+BAR_INCLINES_DEG = (0.0, 0.0, 15.0)  # and inclinations (the first ball the lower)
+
+
+def _bar_length(diameter: float) -> float:
+    """A ball bar's calibrated centre distance for balls of ``diameter``: a nominal of about
+    2.2 diameters in steps of 5 mm (1 mm if that leaves 2-2.4 diameters), off it by a few
+    micrometres as its certificate states (fixed per diameter: one bar per ball size)."""
+    nominal = 5.0 * round(2.2 * diameter / 5.0)
+    if not 2.0 * diameter <= nominal <= 2.4 * diameter:
+        nominal = float(round(2.2 * diameter))
+    off_um = zlib.crc32(f"ball bar {diameter:.4f}".encode()) % 161 / 10.0 - 8.0  # -8..+8 um
+    return round(nominal + off_um * 1e-3, 4)
+
+
+def ball_bar_scans(rig: RigPreset) -> tuple[ScanSpec, ...]:
+    """Three scans of a ball bar (ISO 10360-8 sphere-spacing error), from the rig's ball scan.
+
+    Two balls of the ball scan's diameter, stems and albedos, each on its own vertical stem,
+    centres a calibrated length L apart (``_bar_length``), the bar's middle over the ball's
+    place on the table: level along the ball scan's heading, turned by 60 deg, and turned by
+    120 deg and inclined by 15 deg (its lower ball at the ball's height). Each sweep runs
+    along the bar (heading = the bar's yaw, the camera rolled as for the ball, so the stripes
+    cross the bar as they cross the ball; rising with an inclined bar, as a hand-guided arm
+    follows it, so that both balls stay in the measuring range) over L + 1.6 D, at the ball
+    scan's distance and tilt (its azimuth fixed on the table: the bar's turns change the view
+    of it); a quick capture sweeps all of it, in as many frames per ball diameter of sweep as
+    the quick ball scan has.
+    """
+    ball = next((sp for sp in rig.scans if sp.artefact == "sphere"), None)
+    if ball is None:
+        raise ValueError(f"rig {rig.name} has no sphere scan to take the ball bar's balls from")
+    p = ball.params
+    D = float(p["diameter"])
+    L = _bar_length(D)
+    sweep = round(L + 1.6 * D, 2)
+    quick = math.ceil(rig.quick_frames * sweep / D)
+    out = []
+    for k, (turn, incline) in enumerate(zip(BAR_TURNS_DEG, BAR_INCLINES_DEG, strict=True)):
+        yaw = round((ball.heading_deg + turn + 180.0) % 360.0 - 180.0, 2)
+        params = dict(diameter=D, length=L, centre=tuple(p["centre"]), yaw_deg=yaw,
+                      incline_deg=incline, centre_height=p["centre_height"],
+                      stem_radius=p["stem_radius"], albedo=p["albedo"], stem_albedo=p["stem_albedo"])
+        out.append(replace(
+            ball, name=f"bar_{k + 1}", artefact="ball_bar", params=params, heading_deg=yaw,
+            sweep_incline_deg=incline, sweep_mm=sweep, sweep_offset_mm=(0.0, 0.0), quick_frames=quick))
+    return tuple(out)

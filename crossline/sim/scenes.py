@@ -5,6 +5,9 @@
   specular reflection is not modelled). Truth: the plate's top plane and the block's top plane.
 * plate: a large white plate (box) on the table, tilted by a degree or so. Truth: its top plane.
 * ball: a sphere of ``diameter`` on a cylindrical stem standing on the table. Truth: centre.
+* ball_bar: two balls of ``diameter`` whose centres are ``length`` apart along the bar's
+  direction (its yaw on the table, an optional inclination), each on its own vertical stem
+  standing on the table (ISO 10360-8 sphere-spacing error). Truth: both centres.
 * part: a freeform like an earbud case (``FreeformPart``), a leaning superellipsoid of
   degree 4 cut by the table: rounded, doubly curved, with steep (near-vertical) flanks.
   Truth: a triangle mesh of its surface (``crossline.sim.part``).
@@ -104,6 +107,16 @@ def scan_scene(preset: RigPreset, spec: ScanSpec) -> tuple[Scene, dict, np.ndarr
         truth = {"diameter": float(p["diameter"]), "center_base": c.tolist(),
                  "stem": {"radius": p["stem_radius"], "top_base": c.tolist()}}
         aim = c + np.array([0.0, 0.0, r])
+    elif spec.artefact == "ball_bar":
+        prims += ball_bar_prims(preset, spec)
+        r = p["diameter"] / 2
+        c1, c2 = ball_bar_centres(preset, spec)
+        u = (c2 - c1) / np.linalg.norm(c2 - c1)
+        truth = {"diameter": float(p["diameter"]), "length": float(p["length"]),
+                 "centers_base": [c1.tolist(), c2.tolist()], "direction_base": u.tolist(),
+                 "yaw_deg": float(p["yaw_deg"]), "incline_deg": float(p.get("incline_deg", 0.0)),
+                 "stems": [{"radius": p["stem_radius"], "top_base": c.tolist()} for c in (c1, c2)]}
+        aim = (c1 + c2) / 2 + np.array([0.0, 0.0, r])  # between the balls, on top
     elif spec.artefact == "freeform":
         part = freeform_part(preset, spec)
         prims.append(part)
@@ -126,6 +139,30 @@ def scan_scene(preset: RigPreset, spec: ScanSpec) -> tuple[Scene, dict, np.ndarr
     else:
         raise ValueError(f"unknown artefact {spec.artefact!r}")
     return Scene(prims), truth, aim
+
+
+def ball_bar_centres(preset: RigPreset, spec: ScanSpec) -> tuple[np.ndarray, np.ndarray]:
+    """The two ball centres of a ball bar (base frame): ``length`` apart along the bar, its
+    middle over ``centre``, the first (lower) ball's centre ``centre_height`` above the table."""
+    p = spec.params
+    yaw, inc = np.radians(p["yaw_deg"]), np.radians(p.get("incline_deg", 0.0))
+    u = np.array([np.cos(yaw) * np.cos(inc), np.sin(yaw) * np.cos(inc), np.sin(inc)])
+    half = p["length"] / 2
+    mid = np.array([p["centre"][0], p["centre"][1],
+                    preset.table_z_mm + p["centre_height"] + half * np.sin(inc)])
+    return mid - half * u, mid + half * u
+
+
+def ball_bar_prims(preset: RigPreset, spec: ScanSpec) -> list:
+    """The balls and stems of a ball bar (base frame): ``ball_1``, ``stem_1``, ``ball_2``, ``stem_2``."""
+    p = spec.params
+    z0 = preset.table_z_mm
+    prims: list = []
+    for k, c in enumerate(ball_bar_centres(preset, spec), start=1):
+        prims.append(Sphere(c, p["diameter"] / 2, p["albedo"], f"ball_{k}"))
+        prims.append(Cylinder(np.array([c[0], c[1], z0]), np.array([0.0, 0.0, 1.0]), p["stem_radius"],
+                              float(c[2] - z0), p["stem_albedo"], f"stem_{k}"))
+    return prims
 
 
 def nominal_frame(preset: RigPreset, spec: ScanSpec) -> np.ndarray:
