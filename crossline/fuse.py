@@ -25,11 +25,17 @@ The PLY is binary little-endian with float64 coordinates (``x y z``, then ``nx n
 float32, ``laser`` as uchar 1 = A / 2 = B, ``frame`` as int32); Open3D and other readers
 read it as an ordinary point cloud with normals (:mod:`crossline.io.ply`, which writes it so
 that its bytes depend only on the points).
+
+The code is split by idea (issue 21.3): ``fuse_normals`` (one slab's normals, their
+orientation), ``fuse_refine`` (the pose refinement step and its stats), ``fuse_mesh`` (the
+optional mesh), ``fuse_inputs`` (the points parquet's columns, the scan's frames table). This
+module keeps the cloud (``FusedCloud``), ``estimate_normals`` and the normals towards the
+camera (which cut the cloud into slabs), the voxel grid, ``fuse_cloud`` and ``run_fuse``, and
+re-exports the names its importers use.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 from dataclasses import dataclass, field
@@ -38,8 +44,13 @@ from typing import Any
 
 import numpy as np
 
-from crossline.camera_centres import FrameMoments, camera_centres
+from crossline.camera_centres import FrameMoments as FrameMoments
+from crossline.camera_centres import camera_centres
 from crossline.errors import StageError
+from crossline.fuse_inputs import _read_frames, _same_scan, read_points_columns
+from crossline.fuse_mesh import make_mesh
+from crossline.fuse_normals import _slab_normals, orient_normals
+from crossline.fuse_refine import _refine
 from crossline.io.atomic import write_json
 from crossline.io.ply import read_ply, write_ply, write_stl
 from crossline.scan.refine import HALF_MM, MAX_WIDTH_RATIO, MIN_ANGLE_DEG, ArmPrior, usable_centres
@@ -64,7 +75,6 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 LASER_CODES = {"A": 1, "B": 2}
-NORMAL_MAX_NN = 100  # neighbours at most per normal: a stripe alone would give too few
 
 
 @dataclass(frozen=True)
@@ -107,30 +117,6 @@ def estimate_normals(
     return normals, degenerate
 
 
-def _slab_normals(reach: np.ndarray, start: int, stop: int, radius: float,
-                  viewpoints: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """Normals and fallback mask of ``reach[start:stop]`` from neighbours among ``reach``
-    (:func:`estimate_normals` for one slab; ``viewpoints`` are those of the core points)."""
-    import open3d as o3d
-
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(reach))
-    pcd.estimate_covariances(o3d.geometry.KDTreeSearchParamHybrid(radius=float(radius),
-                                                                  max_nn=NORMAL_MAX_NN))
-    C = np.asarray(pcd.covariances)[start:stop]
-    del pcd
-    w, V = np.linalg.eigh(C)
-    normals = V[:, :, 0].copy()
-    line = w[:, 1] <= 1e-4 * w[:, 2]
-    alone = w[:, 2] <= 0
-    degenerate = line | alone
-    if viewpoints is not None and degenerate.any():
-        v = viewpoints[degenerate] - reach[start:stop][degenerate]
-        t = V[degenerate, :, 2]
-        n = np.where(alone[degenerate, None], v, v - np.sum(v * t, axis=1, keepdims=True) * t)
-        normals[degenerate] = n / np.linalg.norm(n, axis=1, keepdims=True)
-    return normals, degenerate
-
-
 def _normals_towards_camera(
     points: np.ndarray, radius: float, frames: np.ndarray, centres: np.ndarray,
     point_frame: np.ndarray,
@@ -146,23 +132,6 @@ def _normals_towards_camera(
         normals[s.core] = orient_normals(points[s.core], n, views)
         degenerate[s.core] = deg
     return normals, degenerate
-
-
-def orient_normals(
-    points: np.ndarray, normals: np.ndarray, viewpoints: np.ndarray | None
-) -> np.ndarray:
-    """Normals (N, 3) flipped to face their viewpoints (N, 3); without viewpoints, to face the
-    mean direction of the unoriented normals' dominant sign (a consistent, if arbitrary, side)."""
-    n = np.asarray(normals, dtype=np.float64).copy()
-    if viewpoints is not None and np.isfinite(viewpoints).all():
-        flip = np.sum(n * (viewpoints - points), axis=1) < 0
-    else:
-        # the dominant axis of the normals, signed so that most point to +z of the base frame
-        ref = np.linalg.svd(n, full_matrices=False)[2][0]
-        ref = ref if ref[2] >= 0 else -ref
-        flip = n @ ref < 0
-    n[flip] *= -1
-    return n
 
 
 def voxel_down_sample(
@@ -294,101 +263,12 @@ def fuse_cloud(
     return FusedCloud(vp, normals, vlab, vfr.astype(np.int32, copy=False), stats)
 
 
-def _refine(
-    p: np.ndarray, lab: np.ndarray, fr: np.ndarray, cameras: tuple[np.ndarray, np.ndarray] | None,
-    prior: ArmPrior, frame_table: tuple[np.ndarray, np.ndarray, np.ndarray] | None, threads: int,
-    half_mm: float, min_angle_deg: float, crossing_mask: np.ndarray | None,
-) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], dict[str, Any]]:
-    """Points with refined per-frame poses, the camera centres moved with them, and the stats
-    of the refinement (JSON-ready)."""
-    from crossline.scan.refine import correction_transforms, refine_frames
-
-    if cameras is None:
-        raise StageError("pose refinement needs the points in the camera frame (x_cam, y_cam, "
-                         "z_cam) to place each frame's camera, and a frame with enough "
-                         "non-collinear points to place it; the points file has neither")
-    frames, views = cameras
-    times = origins = None
-    if frame_table is not None:
-        tf, tt, to = (np.asarray(a) for a in frame_table)
-        order = np.argsort(tf, kind="stable")
-        tf, tt, to = tf[order], tt[order], to[order]
-        pos = np.clip(np.searchsorted(tf, frames), 0, max(len(tf) - 1, 0))
-        missing = frames if len(tf) == 0 else frames[tf[pos] != frames]
-        if len(missing):
-            raise StageError(f"pose refinement: frame(s) {missing[:5].tolist()} of the points are "
-                             "not in the scan's frames table")
-        times, origins = tt[pos].astype(np.float64), to[pos].astype(np.float64)
-    ref = refine_frames(fr, lab, p, views, prior, frames=frames, times=times, origins=origins,
-                        half_mm=half_mm, min_angle_deg=min_angle_deg, crossing_mask=crossing_mask,
-                        threads=threads)
-    d = dict(ref.diagnostics)
-    # timings go to the log, not to the stats: the same points must give the same bytes
-    log.info("pose refinement: %d crossings, %d frames, %.2f s (crossings %.2f s)", d["crossings"],
-             d["frames"], d.pop("seconds"), d.pop("seconds_crossings"))
-    info: dict[str, Any] = {
-        "method": "A-B stripe crossings between frames, MAP per-frame rigid corrections",
-        "prior": {**dataclasses.asdict(prior),
-                  "time_correlated": times is not None,
-                  "rotation_centre": "flange (frames table)" if origins is not None
-                  else "camera centre"},
-        **{k: (float(v) if isinstance(v, np.floating) else v) for k, v in d.items()},
-        "per_frame": {
-            "frame": frames.tolist(),
-            # estimated error of the reported pose (reported minus true), base frame: rotation
-            # about the flange (or camera) origin, and the origin's position error
-            "rotation_rad": ref.rotation.tolist(),
-            "translation_mm": ref.translation.tolist(),
-            "origin_mm": ref.origins.tolist(),
-            "correction_rms_mm": ref.frame_rms.tolist(),
-        },
-    }
-    # every point of a frame moves with it, so its camera centre does too
-    C = correction_transforms(ref.rotation, ref.translation, ref.origins)
-    moved = np.einsum("fij,fj->fi", C[:, :3, :3], views) + C[:, :3, 3]
-    return ref.points, (frames, moved), info
-
-
 def _by_laser(codes: np.ndarray) -> dict[str, int]:
     c = np.bincount(np.asarray(codes, dtype=np.int64), minlength=3)
     out = {"A": int(c[1]), "B": int(c[2])}
     if c[0]:
         out["unknown"] = int(c[0])
     return out
-
-
-def make_mesh(cloud: FusedCloud, method: str, *, threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """Surface mesh (vertices, triangles) of the cloud by Poisson or ball pivoting (Open3D).
-
-    Poisson vertices farther than 3 point spacings from every point, or over the sparsest
-    support (lowest 2 % densities), are removed: Poisson closes the surface where nothing was
-    measured. Ball pivoting uses radii of 1, 2 and 4 times the median point spacing.
-    """
-    import open3d as o3d
-    from scipy.spatial import cKDTree
-
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud.points))
-    pcd.normals = o3d.utility.Vector3dVector(cloud.normals)
-    if method == "poisson":
-        # one thread: Open3D's parallel Poisson solver is not reproducible (different bytes
-        # from run to run with 2 threads); a mesh is an optional by-product, so bytes win
-        mesh, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
-            pcd, depth=9, n_threads=1
-        )
-        dens = np.asarray(dens)
-        # Poisson closes the surface where nothing was measured: drop what lies far from
-        # every point (beyond 3 point spacings) and the sparsest support
-        spacing = float(np.median(np.asarray(pcd.compute_nearest_neighbor_distance())))
-        dist, _ = cKDTree(cloud.points).query(np.asarray(mesh.vertices), k=1, workers=threads)
-        far = dist > 3 * spacing
-        mesh.remove_vertices_by_mask(far | (dens < np.quantile(dens, 0.02)))
-    elif method == "ball_pivoting":
-        spacing = float(np.median(np.asarray(pcd.compute_nearest_neighbor_distance())))
-        radii = o3d.utility.DoubleVector([spacing, 2 * spacing, 4 * spacing])
-        mesh = o3d.geometry.TriangleMesh.create_from_point_cloud_ball_pivoting(pcd, radii)
-    else:
-        raise ValueError(f"unknown mesh method {method!r}; expected poisson or ball_pivoting")
-    return np.asarray(mesh.vertices).copy(), np.asarray(mesh.triangles).copy()
 
 
 # ----------------------------------------------------------------------------- stage
@@ -493,106 +373,6 @@ def run_fuse(
     if stats is not None:
         write_json(stats, cloud.stats)
     return cloud
-
-
-_POINT_COLUMNS = ("frame", "laser", "x", "y", "z", "x_cam", "y_cam", "z_cam", "width")
-
-
-def read_points_columns(path: Path) -> dict[str, Any]:
-    """The columns fuse needs from a points parquet, row group by row group into arrays.
-
-    Returns ``xyz`` (N, 3) float64 base frame, ``laser`` (N,) uint8 codes (1 = A, 2 = B,
-    0 = other), ``frame`` (N,) int64 and ``width`` (N,) float32 (where the file has it) of the
-    points with finite x, y, z; ``non_finite`` counts the others. Where the file has x_cam,
-    y_cam, z_cam, ``cameras`` = (frames, camera centres) from them (:class:`FrameMoments`)
-    instead of the points themselves. Strings never become Python objects: a long scan's
-    DataFrame would hold several hundred bytes a point.
-    """
-    import pyarrow.compute as pc
-    import pyarrow.parquet as pq
-
-    try:
-        f = pq.ParquetFile(path)
-        names = set(f.schema_arrow.names)
-    except Exception as exc:  # pyarrow raises several types for broken files
-        raise StageError(f"{path}: cannot be read as parquet ({exc})") from exc
-    missing = [c for c in ("x", "y", "z") if c not in names]
-    if missing:
-        what = ("a stripes file (pixel centres u, v), not a points file: triangulate turns it into "
-                "points" if {"u", "v"} <= names else "expected frame, laser, x, y, z, ...")
-        raise StageError(f"{path}: missing column(s) {missing}; {what}")
-    n = f.metadata.num_rows
-    if n == 0:
-        raise StageError(f"{path}: has no points; nothing to fuse")
-    cam = all(c in names for c in ("x_cam", "y_cam", "z_cam"))
-    out: dict[str, Any] = {"xyz": np.empty((n, 3)), "laser": np.zeros(n, np.uint8),
-                           "frame": np.zeros(n, np.int64)}
-    moments = FrameMoments() if cam else None
-    if "width" in names:
-        out["width"] = np.empty(n, np.float32)
-    k = 0
-    try:
-        for g in range(f.num_row_groups):
-            t = f.read_row_group(g, columns=[c for c in _POINT_COLUMNS if c in names])
-            xyz = np.column_stack([t[c].to_numpy() for c in ("x", "y", "z")]).astype(np.float64)
-            ok = np.isfinite(xyz).all(1)
-            m = int(ok.sum())
-            out["xyz"][k:k + m] = xyz[ok]
-            if "laser" in names:
-                lab = t["laser"].cast("string")
-                codes = (np.asarray(pc.equal(lab, "A").fill_null(False)).astype(np.uint8)
-                         + 2 * np.asarray(pc.equal(lab, "B").fill_null(False)).astype(np.uint8))
-                out["laser"][k:k + m] = codes[ok]
-            if "frame" in names:
-                out["frame"][k:k + m] = t["frame"].to_numpy()[ok]
-            if moments is not None:
-                moments.add(out["frame"][k:k + m], np.column_stack(
-                    [t[c].to_numpy() for c in ("x_cam", "y_cam", "z_cam")])[ok], xyz[ok])
-            if "width" in names:
-                out["width"][k:k + m] = t["width"].to_numpy()[ok]
-            k += m
-    except StageError:
-        raise
-    except Exception as exc:
-        raise StageError(f"{path}: cannot be read as parquet ({exc})") from exc
-    if k == 0:
-        raise StageError(f"{path}: none of its {n} points has finite x, y, z; nothing to fuse")
-    for key in ("xyz", "laser", "frame", "width"):
-        if key in out and k < n:
-            out[key] = out[key][:k]
-    out["non_finite"] = n - k
-    if moments is not None:
-        out["cameras"] = moments.centres()
-    return out
-
-
-def _same_scan(points: Path, frames: Path, n_frames: int) -> None:
-    """Raise a StageError when ``frames`` (a frames.csv of ``n_frames`` rows) is not the table of
-    the scan ``points`` were triangulated from (as the points file's metadata says)."""
-    from crossline.scan.triangulate import read_points_meta
-
-    try:
-        meta = read_points_meta(points)
-    except (StageError, ValueError):  # a points file of another tool: nothing to compare with
-        return
-    scan, n = meta.get("scan"), meta.get("frames")
-    if frames.parent.parent.name == "scans" and scan is not None and frames.parent.name != scan:
-        raise StageError(f"{frames}: the frames table of scan {frames.parent.name!r}, but {points} "
-                         f"holds the points of scan {scan!r} (give --frames scans/{scan}/frames.csv)")
-    if isinstance(n, int) and n != n_frames:
-        raise StageError(f"{frames}: {n_frames} frames, but {points} was triangulated from the {n} "
-                         f"frames of scan {scan!r}: not that scan's frames table")
-
-
-def _read_frames(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Frame numbers, times (s) and reported flange positions (mm) of a scan's frames.csv."""
-    from crossline.io.capture import read_frames_table
-
-    path = Path(path)
-    if not path.is_file():
-        raise StageError(f"{path}: frames table not found (the scan's frames.csv)")
-    t = read_frames_table(path)  # the capture's own checks: each faulty row named
-    return t.frames, t.time_s, t.T_base_tool[:, :3, 3]
 
 
 def load_stats(path: str | Path) -> dict[str, Any] | None:

@@ -1,0 +1,75 @@
+"""The fuse stage's pose refinement: each frame's arm pose refined from the scan, and its stats.
+
+``_refine`` joins the points to the scan's frames table (times, flange positions), runs
+:func:`crossline.scan.refine.refine_frames`, moves each frame's camera centre with its
+points and returns the refinement's stats for the stats JSON (``refine``). It logs under
+the fuse stage's logger (``crossline.fuse``). Split from ``crossline.fuse`` (issue 21.3).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from typing import Any
+
+import numpy as np
+
+from crossline.errors import StageError
+from crossline.scan.refine import ArmPrior
+
+log = logging.getLogger("crossline.fuse")
+
+
+def _refine(
+    p: np.ndarray, lab: np.ndarray, fr: np.ndarray, cameras: tuple[np.ndarray, np.ndarray] | None,
+    prior: ArmPrior, frame_table: tuple[np.ndarray, np.ndarray, np.ndarray] | None, threads: int,
+    half_mm: float, min_angle_deg: float, crossing_mask: np.ndarray | None,
+) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], dict[str, Any]]:
+    """Points with refined per-frame poses, the camera centres moved with them, and the stats
+    of the refinement (JSON-ready)."""
+    from crossline.scan.refine import correction_transforms, refine_frames
+
+    if cameras is None:
+        raise StageError("pose refinement needs the points in the camera frame (x_cam, y_cam, "
+                         "z_cam) to place each frame's camera, and a frame with enough "
+                         "non-collinear points to place it; the points file has neither")
+    frames, views = cameras
+    times = origins = None
+    if frame_table is not None:
+        tf, tt, to = (np.asarray(a) for a in frame_table)
+        order = np.argsort(tf, kind="stable")
+        tf, tt, to = tf[order], tt[order], to[order]
+        pos = np.clip(np.searchsorted(tf, frames), 0, max(len(tf) - 1, 0))
+        missing = frames if len(tf) == 0 else frames[tf[pos] != frames]
+        if len(missing):
+            raise StageError(f"pose refinement: frame(s) {missing[:5].tolist()} of the points are "
+                             "not in the scan's frames table")
+        times, origins = tt[pos].astype(np.float64), to[pos].astype(np.float64)
+    ref = refine_frames(fr, lab, p, views, prior, frames=frames, times=times, origins=origins,
+                        half_mm=half_mm, min_angle_deg=min_angle_deg, crossing_mask=crossing_mask,
+                        threads=threads)
+    d = dict(ref.diagnostics)
+    # timings go to the log, not to the stats: the same points must give the same bytes
+    log.info("pose refinement: %d crossings, %d frames, %.2f s (crossings %.2f s)", d["crossings"],
+             d["frames"], d.pop("seconds"), d.pop("seconds_crossings"))
+    info: dict[str, Any] = {
+        "method": "A-B stripe crossings between frames, MAP per-frame rigid corrections",
+        "prior": {**dataclasses.asdict(prior),
+                  "time_correlated": times is not None,
+                  "rotation_centre": "flange (frames table)" if origins is not None
+                  else "camera centre"},
+        **{k: (float(v) if isinstance(v, np.floating) else v) for k, v in d.items()},
+        "per_frame": {
+            "frame": frames.tolist(),
+            # estimated error of the reported pose (reported minus true), base frame: rotation
+            # about the flange (or camera) origin, and the origin's position error
+            "rotation_rad": ref.rotation.tolist(),
+            "translation_mm": ref.translation.tolist(),
+            "origin_mm": ref.origins.tolist(),
+            "correction_rms_mm": ref.frame_rms.tolist(),
+        },
+    }
+    # every point of a frame moves with it, so its camera centre does too
+    C = correction_transforms(ref.rotation, ref.translation, ref.origins)
+    moved = np.einsum("fij,fj->fi", C[:, :3, :3], views) + C[:, :3, 3]
+    return ref.points, (frames, moved), info
