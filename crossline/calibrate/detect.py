@@ -67,6 +67,8 @@ class Detection:
     points: np.ndarray | None
     reason: str = ""
     shapes: np.ndarray | None = None
+    # (N,) chessboard corners not refined, with ``partial``: their rows of ``points`` are NaN
+    missing: np.ndarray | None = None
 
     @property
     def found(self) -> bool:
@@ -257,8 +259,14 @@ def subpix_corners(img8: np.ndarray, points: np.ndarray, board: Board) -> np.nda
     return q.reshape(-1, 2).astype(np.float64)
 
 
-def detect_board(image: np.ndarray, board: Board, *, refine: bool = True) -> Detection:
-    """Find ``board`` in a grey image; return refined points in board order or the reason why not."""
+def detect_board(image: np.ndarray, board: Board, *, refine: bool = True,
+                 partial: bool = False) -> Detection:
+    """Find ``board`` in a grey image; return refined points in board order or the reason why not.
+
+    ``partial``: a chessboard whose every corner was found but some could not be refined (a
+    laser stripe drawn across them) is returned with those rows NaN and flagged in
+    ``missing``, and ``reason`` saying which; the caller decides whether the rest will do.
+    """
     img = np.asarray(image)
     h, w = img.shape
     img8 = to_uint8(img)
@@ -293,8 +301,12 @@ def detect_board(image: np.ndarray, board: Board, *, refine: bool = True) -> Det
         if not ok.all():
             bad = np.flatnonzero(~ok)
             where = ", ".join(f"(row {k // board.cols}, col {k % board.cols})" for k in bad[:5])
-            return Detection(None, f"chessboard corners could not be refined: {bad.size} of {ok.size} "
-                                   f"corners show no sharp X-junction, e.g. at {where}")
+            reason = (f"chessboard corners could not be refined: {bad.size} of {ok.size} "
+                      f"corners show no sharp X-junction, e.g. at {where}")
+            if not partial:
+                return Detection(None, reason)
+            pts = np.where(ok[:, None], pts, np.nan)
+            return Detection(pts, reason, missing=~ok)
         return Detection(pts)
     if not refine:
         return Detection(pts)

@@ -43,6 +43,7 @@ class PoseStripe:
     on_other: np.ndarray | None = None  # (M,) bool: the centre lies on the other albedo class
     board_points: np.ndarray | None = None  # (K, 2) px: the board's detected points (its pose)
     bias_correction: bool = True  # whether the pose corrected the circle-centre bias
+    corners_missing: int = 0  # chessboard corners under the stripe, left out of the pose (always on)
 
 
 def _peak(diff: np.ndarray, k: int = 400) -> float:
@@ -66,6 +67,54 @@ def _stripe_axis(diff: np.ndarray, thr: float, keep) -> str:
     _, V = np.linalg.eigh(c)
     d = V[:, 1]
     return "column" if abs(d[0]) >= abs(d[1]) else "row"
+
+
+MAX_MISSING_CORNERS = 0.25  # share of a chessboard's corners the stripe may hide (always on)
+
+
+def _check_under_stripe(camera: Camera, board: Board, T: np.ndarray, det, stripe_mask: np.ndarray,
+                        refusal: str) -> None:
+    """Accept a board pose fitted without the chessboard corners that could not be refined,
+    if the laser stripe (removed from the image) drew across them: each lies within the
+    refinement's reach (half a square) of the stripe's line, or its removal painted over the
+    corner's window (a quarter square), and most corners are left.
+    Otherwise the board was not seen well enough: raise ``refusal``.
+
+    The line, not the stripe's pixels: on the dark squares the stripe is too faint to be
+    removed, and there it spoils the corners it crosses without being in the mask. A plane's
+    stripe on a flat board is a straight line (to the lens distortion over a square or two).
+    """
+    from crossline.calibrate.pose import project_board
+
+    uv = project_board(camera, board, T)
+    grid = uv.reshape(board.rows, board.cols, 2)
+    square = float(np.median(np.linalg.norm(np.diff(grid, axis=1), axis=-1)))
+    near = np.zeros(int(det.missing.sum()), dtype=bool)
+    # the stripe's pixels on the board (its corners' outline grown by a square): beyond the
+    # board the stripe lies on the table, on another line
+    c = grid[[0, 0, -1, -1], [0, -1, -1, 0]]
+    c = c + (c - c.mean(0)) * (square / np.linalg.norm(c - c.mean(0), axis=1))[:, None]
+    on_board = np.zeros(stripe_mask.shape, np.uint8)
+    cv2.fillConvexPoly(on_board, np.round(c).astype(np.int32), 1)
+    ys, xs = np.nonzero(stripe_mask & on_board.astype(bool))
+    q = uv[det.missing]
+    if len(xs) >= 2:
+        vx, vy, x0, y0 = cv2.fitLine(np.column_stack([xs, ys]).astype(np.float32), cv2.DIST_HUBER,
+                                     0, 0.01, 0.01).ravel()
+        near = np.abs((q[:, 0] - x0) * vy - (q[:, 1] - y0) * vx) <= 0.5 * square
+    # or where the removal itself painted over the corner's window (a piece it took for the
+    # stripe's: the opening's residues at corners line up along the board's rows)
+    dist = cv2.distanceTransform((~stripe_mask).astype(np.uint8), cv2.DIST_L2, 3)
+    k = np.round(q).astype(np.int64)
+    h, w = dist.shape
+    inside = (k[:, 0] >= 0) & (k[:, 0] < w) & (k[:, 1] >= 0) & (k[:, 1] < h)
+    near[inside] |= dist[k[inside, 1], k[inside, 0]] <= 0.25 * square
+    share = float(det.missing.mean())
+    if not near.all() or share > MAX_MISSING_CORNERS:
+        why = (f"{int((~near).sum())} of them away from the laser stripe" if not near.all()
+               else f"{100 * share:.0f} % of the corners, more than the stripe may hide "
+                    f"({100 * MAX_MISSING_CORNERS:.0f} %)")
+        raise CalibrationError(f"{refusal} ({why})")
 
 
 def stripe_points(
@@ -97,15 +146,20 @@ def stripe_points(
 
     full_scale(laser_image.dtype)  # unsigned integers only
     where, name_board = "lasers-off image", board_name or name
+    stripe_mask = None
     if board_image is None:
-        board_image, _ = remove_stripe(laser_image)
+        board_image, stripe_mask = remove_stripe(laser_image)
         where, name_board = "laser image (laser always on; stripe removed)", name
         if detect_image is not None:
-            detect_image, _ = remove_stripe(detect_image)
-    det = detect_board(board_image if detect_image is None else detect_image, board)
+            detect_image, stripe_mask = remove_stripe(detect_image)
+    det = detect_board(board_image if detect_image is None else detect_image, board,
+                       partial=stripe_mask is not None)
     if not det.found:
         raise CalibrationError(f"{name_board}: {det.reason} in the {where} of this pose")
     pose = board_pose(camera, board, det.points, bias_correction=bias_correction)
+    if det.missing is not None and det.missing.any():
+        _check_under_stripe(camera, board, pose.T_cam_board, det, stripe_mask,
+                            f"{name_board}: {det.reason} in the {where} of this pose")
     T = pose.T_cam_board
     n = T[:3, 2]
     # laser-on minus the lasers-off image scaled to the laser image's exposure (calibration
@@ -226,4 +280,5 @@ def stripe_points(
     iv = np.clip(np.round(centres[:, 1]).astype(int), 0, light.shape[0] - 1)
     on_other = (light if board.circles == "light" else ~light)[iv, iu]
     return PoseStripe(pts, centres, T, pose.rms_px, axis, n_centres, albedo, on_other,
-                      np.asarray(det.points, dtype=np.float64), bias_correction)
+                      np.asarray(det.points, dtype=np.float64), bias_correction,
+                      0 if det.missing is None else int(det.missing.sum()))

@@ -206,6 +206,8 @@ def run_calibrate_lasers(
                 "board_rms_px": s.board_rms_px,
                 "T_cam_board": s.T_cam_board,
             })
+            if s.corners_missing:  # laser always on: chessboard corners the stripe spoilt
+                poses[-1]["board_corners_missing"] = s.corners_missing
             k += m
         r = plane_distance(pts[inl], nrm, d)
         # the scatter about the plane in pixels at the points' depth: a centre is good to a

@@ -26,8 +26,9 @@ class BoardPose:
 
     @property
     def rms_px(self) -> float:
-        """RMS reprojection error (px) of the view."""
-        return float(np.sqrt(np.mean(np.sum(self.residuals**2, axis=1))))
+        """RMS reprojection error (px) of the view, over its measured points."""
+        r2 = np.sum(self.residuals**2, axis=1)
+        return float(np.sqrt(np.mean(r2[np.isfinite(r2)])))
 
 
 def project_board(camera: Camera, board: Board, T_cam_board: np.ndarray) -> np.ndarray:
@@ -38,6 +39,9 @@ def project_board(camera: Camera, board: Board, T_cam_board: np.ndarray) -> np.n
 
 def _pnp(camera: Camera, board: Board, pts: np.ndarray, guess: np.ndarray | None) -> np.ndarray:
     obj = board.object_points()
+    use = np.isfinite(pts).all(axis=1)
+    if not use.all():  # points not measured (NaN rows): the pose from the others
+        obj, pts = obj[use], pts[use]
     if guess is None:
         ok, rvec, tvec = cv2.solvePnP(obj, pts, camera.K, camera.dist, flags=cv2.SOLVEPNP_IPPE)
         if not ok:
@@ -67,7 +71,8 @@ def board_pose(
     iterations: int = 5,
     tol_px: float = 1e-5,
 ) -> BoardPose:
-    """``T_cam_board`` from measured points (N, 2) by PnP (iterative, LM-refined).
+    """``T_cam_board`` from measured points (N, 2) by PnP (iterative, LM-refined); rows of
+    NaN are points not measured, left out of the fit (and NaN in the result's arrays).
 
     With ``bias_correction``, alternate: pose → predicted centroid offsets → pose on the
     corrected points, until the correction changes by less than ``tol_px``.
