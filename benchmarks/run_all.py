@@ -47,6 +47,7 @@ AREAS: dict[str, tuple[str, str]] = {
                     "python benchmarks/bench_uncertainty.py"),
     "jpeg": ("JPEG frames against PNG: camera, plane angle and point sigma",
              "python benchmarks/bench_jpeg.py"),
+    "ball_bar": ("Ball bar: sphere-spacing error SD against truth", "python benchmarks/bench_ball_bar.py"),
 }
 
 

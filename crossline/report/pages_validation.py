@@ -268,7 +268,8 @@ UNCERTAINTY_FIGURES = {"mean_mm": "gauge height (mean)", "flatness_mm": "flatnes
                        "share_within_band": "share within the band", "diameter_mm": "diameter",
                        "form_error_mm": "form error (all)", "form_error_d95_mm": "form error (D95)",
                        "form_error_vdi_mm": "form error (VDI/VDE 2634-2, 0.3 % discarded)",
-                       "form_error_p95_mm": "form error (2.5–97.5 %)"}
+                       "form_error_p95_mm": "form error (2.5–97.5 %)",
+                       "length_mm": "ball bar: centre distance (SD)"}
 BUDGET = {"camera": "camera", "laser_planes": "planes", "handeye": "hand-eye",
           "repeatability": "frames"}
 
