@@ -337,7 +337,10 @@ def page_uncertainty(m: dict[str, Any]) -> Figure | None:
            "repeatability; a camera draw moves the laser planes with it, as they were fitted "
            "through it. Not covered: hand-eye's share of the camera's error (drawn "
            "independently), the camera's model error where distortion terms were fixed, "
-           "the arm's systematic error beyond what hand-eye absorbed, biases of the stripe "
+           "the arm's systematic error beyond what hand-eye absorbed, the arm's slow pose "
+           "drift that pose refinement leaves (resampling frames sees each frame's own error, "
+           "not one shared by the frames of a pass: it shows in a ball bar's SD and a "
+           "sphere's size), biases of the stripe "
            "centres with the angle of incidence (see the sphere's size by incidence), the "
            "artefact's own calibration and temperature. How often the true value lies within "
            "±U on simulated captures: benchmarks/bench_uncertainty.py.", size=8)

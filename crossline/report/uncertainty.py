@@ -21,7 +21,10 @@ moves the laser planes with it (each plane's camera Jacobian: the boards' poses 
 points found again with that camera), since the planes were fitted through the camera; the
 planes' own draw adds their fit's noise, and ``X`` is drawn on its own (its share of the
 camera's error is neglected). Not covered: the camera's model error where distortion terms
-were fixed, the arm's systematic (volumetric) error beyond what hand-eye absorbed, the nominal
+were fixed, the arm's systematic (volumetric) error beyond what hand-eye absorbed, the arm's
+slow pose drift that pose refinement leaves (the bootstrap resamples each frame's own error,
+not an error the frames of one pass share: the ball bar's SD and the sphere's size show it on
+simulated captures, benchmarks/results/ball_bar.txt and uncertainty.txt), the nominal
 artefact's own calibration, and temperature.
 """
 
