@@ -379,7 +379,9 @@ def refine_circle_centres(
         # the first window's shape comes from the homography and needs slack; later ones come
         # from the blob's own moments (slightly widened by the blur)
         if it == 0:
-            rho_in = 1.25 + 3.0 / r_minor
+            # where circles are small in the image and close together, the slack must still
+            # leave a background ring of 0.2 radii between this window and the neighbours'
+            rho_in = np.minimum(1.25 + 3.0 / r_minor, np.maximum(0.5 * (free - 0.2), 1.05))
         elif it == 1:
             rho_in = 1.0 + 5.0 / r_minor
         else:
