@@ -28,6 +28,13 @@ def _truth(capture: Path) -> dict:
     return json.loads((capture / "truth.json").read_text())
 
 
+def _plane_error(plane, true: dict) -> tuple[float, float]:
+    """Angle (deg) between a fitted plane and the true one, and d - d_true (mm), same side."""
+    n_t = np.array(true["normal"])
+    n, d = (plane.normal, plane.d) if plane.normal @ n_t > 0 else (-plane.normal, -plane.d)
+    return float(np.degrees(angle_between(n, n_t))), float(d - true["d"])
+
+
 def _true_camera(truth: dict) -> Camera:
     c = truth["camera"]
     return Camera(np.array(c["K"]), np.array(c["dist"]), tuple(c["image_size"]))
@@ -227,11 +234,9 @@ def test_laser_always_on_calibrates_against_truth(quick_capture: Path, tmp_path:
     planes = LaserPlanes.load(las)
     truth = _truth(quick_capture)
     for laser in ("A", "B"):
-        n_t = np.array(truth["lasers"][laser]["normal"])
         p = planes[laser]
-        n, d = (p.normal, p.d) if p.normal @ n_t > 0 else (-p.normal, -p.d)
-        assert np.degrees(angle_between(n, n_t)) < 0.01
-        assert abs(d - truth["lasers"][laser]["d"]) < 0.01
+        angle, dd = _plane_error(p, truth["lasers"][laser])
+        assert angle < 0.01 and abs(dd) < 0.01
         assert len(p.extra["poses"]) == 3 and not p.extra.get("skipped_poses")
         assert all(q["n_used"] > 100 for q in p.extra["poses"])
 
@@ -253,11 +258,9 @@ def test_laser_always_on_chessboard_calibrates_against_truth(quick_capture_chess
     truth = _truth(quick_capture_chessboard)
     missing = []
     for laser in ("A", "B"):
-        n_t = np.array(truth["lasers"][laser]["normal"])
         p = planes[laser]
-        n, d = (p.normal, p.d) if p.normal @ n_t > 0 else (-p.normal, -p.d)
-        assert np.degrees(angle_between(n, n_t)) < 0.005
-        assert abs(d - truth["lasers"][laser]["d"]) < 0.005
+        angle, dd = _plane_error(p, truth["lasers"][laser])
+        assert angle < 0.005 and abs(dd) < 0.005
         assert len(p.extra["poses"]) == 3 and not p.extra.get("skipped_poses")
         missing += [q.get("board_corners_missing", 0) for q in p.extra["poses"]]
     # the case arises: some poses lost corners under the stripe, never many of the 108
