@@ -116,4 +116,14 @@ def _read_frames(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if not path.is_file():
         raise StageError(f"{path}: frames table not found (the scan's frames.csv)")
     t = read_frames_table(path)  # the capture's own checks: each faulty row named
+    # the rows' times increase down the file; the pose refinement's prior correlates the arm's
+    # error over the time between frames in frame order, so they must increase with the numbers
+    order = np.argsort(t.frames, kind="stable")
+    back = np.flatnonzero(np.diff(t.time_s[order]) <= 0)
+    if len(back):
+        a, b = order[back[0]], order[back[0] + 1]
+        raise StageError(
+            f"{path}: frame {t.frames[b]} was taken at {t.time_s[b]:g} s, before frame {t.frames[a]} "
+            f"at {t.time_s[a]:g} s ({len(back)} such pair(s) of consecutive frame numbers): a scan's "
+            "frames are numbered in the order they were taken, their times increasing with the numbers")
     return t.frames, t.time_s, t.T_base_tool[:, :3, 3]
