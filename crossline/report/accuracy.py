@@ -148,6 +148,17 @@ def _git_commit() -> str | None:
         return None
 
 
+def _inside_capture(capture: Path, files: list[str]) -> None:
+    """Refuse the capture when one of ``files`` (the capture's files the report opens, relative
+    to it) leads outside it once symbolic links are followed: CaptureError naming each."""
+    from crossline.io.contract import CaptureError, Problem, _Inside
+
+    inside = _Inside(capture)
+    problems = [Problem(rel, why) for rel in files if (why := inside.why_not(capture / rel)) is not None]
+    if problems:
+        raise CaptureError(capture, problems)
+
+
 @dataclass
 class ReportData:
     """Everything measured for a report: the metrics (JSON) and the arrays its plots need."""
@@ -163,11 +174,19 @@ def build_report(
     capture: Path, interim_dir: Path, processed_dir: Path, config: Any = None
 ) -> ReportData:
     """Measure everything a report shows; return the metrics (JSON-ready) and plot arrays."""
-    from crossline.io.capture import read_rig
+    from crossline.io.capture import read_frames_table, read_rig
+    from crossline.io.contract import LASERS
 
     capture, interim_dir, processed_dir = Path(capture), Path(interim_dir), Path(processed_dir)
     full, tol, met = load_config(config)
     rig = read_rig(capture / "rig.yaml")
+    _inside_capture(capture, ["truth.json", "calibration/handeye/poses.csv",
+                              *(f"scans/{name}/frames.csv" for name in sorted(rig.scans))])
+    for name in sorted(rig.scans):
+        # the capture's own checks of each frames table the report reads (a faulty row named),
+        # as the stages before it made them: the points per frame and laser state come from it
+        if (capture / "scans" / name / "frames.csv").is_file():
+            read_frames_table(capture / "scans" / name / "frames.csv", tuple(getattr(rig, "lasers", LASERS)))
     files: list[tuple[str, str, Path]] = [("capture", "rig.yaml", capture / "rig.yaml")]
     for rel in ("calibration/handeye/poses.csv",):
         if (capture / rel).is_file():
