@@ -62,15 +62,22 @@ def _transform(T: np.ndarray, p: np.ndarray) -> np.ndarray:
     return p @ T[:3, :3].T + T[:3, 3]
 
 
-def _fpfh(pc: Any, voxel: float) -> tuple[Any, Any]:
-    """Voxel-downsampled cloud with outward-oriented normals and its FPFH features."""
+def _fpfh(pc: Any, voxel: float, what: str = "cloud") -> tuple[Any, Any]:
+    """Voxel-downsampled cloud with outward-oriented normals and its FPFH features
+    (ValueError naming ``what`` where the normals cannot be oriented: a flat surface)."""
     import open3d as o3d
 
     down = pc.voxel_down_sample(voxel)
     down.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * voxel, max_nn=30))
     # FPFH depends on the normals' sign: orient both clouds the same way (consistently
     # over the surface, then outward on the whole) or their features do not match
-    down.orient_normals_consistent_tangent_plane(12)
+    try:
+        down.orient_normals_consistent_tangent_plane(12)
+    except RuntimeError as exc:  # Open3D's qhull: points all in one plane (or line) have no hull
+        raise ValueError(
+            f"the coarse alignment cannot orient the normals of the {what}: its {len(down.points)} "
+            f"points (at {voxel:g} mm) lie in one plane or line ({str(exc).splitlines()[0].strip()}); "
+            "a flat surface cannot be placed by its shape: give a datum (rig.yaml nominal_pose)") from None
     p = np.asarray(down.points)
     n = np.asarray(down.normals)
     if ((p - p.mean(0)) * n).sum() < 0:
@@ -139,8 +146,8 @@ def _ransac(points: np.ndarray, surface: _Surface, voxel: float, seed: int, hypo
     n_samples = int(min(max(4.0 * mesh.get_surface_area() / voxel**2, 5000), 400_000))
     o3d.utility.random.seed(seed)
     nominal = mesh.sample_points_uniformly(n_samples)
-    src, src_f = _fpfh(_to_cloud(points), voxel)
-    dst, dst_f = _fpfh(nominal, voxel)
+    src, src_f = _fpfh(_to_cloud(points), voxel, "scanned cloud")
+    dst, dst_f = _fpfh(nominal, voxel, "nominal mesh")
     p_down = np.asarray(src.points)
     best, best_score = None, -1.0
     fits: list[tuple[np.ndarray, float]] = []
