@@ -47,7 +47,8 @@ expected failure), about 40 s of one core for the first six commands (most of it
 calibrations that pass) and about 16 s for fuse and the report (products built once included).
 ``CROSSLINE_FUZZ_SCALE=N`` multiplies the random and path-out cases (a longer hunt, off the
 suite: N = 4 for the camera and lasers, 8 for hand-eye, 30 for the others found the case
-below and nothing else; N = 10 for fuse and the report found the cases below).
+below and nothing else; N = 10 for fuse and the report found the cases below, N = 15 then
+nothing more).
 The capture fuzzed is the quick capture of conftest.py without laser pose_02 and hand-eye
 views 05-07 (a calibration that passes then decodes fewer images); the commands get the
 rig's true calibrations from truth.json, triangulate the stripes of the unbroken capture.
@@ -553,8 +554,10 @@ def _mesh(op: tuple, root: Path, case: Path) -> str | None:
     if not stl.is_file() or stl.is_symlink():
         return None
     data = stl.read_bytes()
-    tri = np.frombuffer(data, STL_TRIANGLE, offset=84).copy() if len(data) >= 84 else None
-    if tri is None or len(tri) != np.frombuffer(data, "<u4", 1, 80)[0]:
+    if len(data) < 84 or (len(data) - 84) % STL_TRIANGLE.itemsize:
+        return None  # broken by an earlier corruption
+    tri = np.frombuffer(data, STL_TRIANGLE, offset=84).copy()
+    if len(tri) == 0 or len(tri) != np.frombuffer(data, "<u4", 1, 80)[0]:
         return None
     V = tri["v"].reshape(-1, 3)
     F = np.arange(len(V)).reshape(-1, 3)
