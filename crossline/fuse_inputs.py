@@ -108,6 +108,24 @@ def _same_scan(points: Path, frames: Path, n_frames: int) -> None:
                          f"frames of scan {scan!r}: not that scan's frames table")
 
 
+def _frames_in_table(points: Path, frames: Path, point_frames: np.ndarray,
+                     table_frames: np.ndarray) -> None:
+    """Raise a StageError naming ``frames`` when a frame of the points is not one of its rows."""
+    f = np.asarray(point_frames, dtype=np.int64)
+    if len(f) == 0:
+        return
+    lo, hi = int(f.min()), int(f.max())
+    if lo >= 0 and hi < 100_000_000:  # a frame-number histogram: O(N), no sort of the points
+        seen = np.flatnonzero(np.bincount(f, minlength=hi + 1))
+    else:
+        seen = np.unique(f)
+    missing = np.setdiff1d(seen, np.asarray(table_frames, dtype=np.int64))
+    if len(missing):
+        raise StageError(f"{frames}: frame(s) {missing[:5].tolist()} of {points.name} "
+                         f"({len(missing)} in all) are not rows of this frames table: it is "
+                         "not the table of the scan these points were triangulated from")
+
+
 def _read_frames(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Frame numbers, times (s) and reported flange positions (mm) of a scan's frames.csv."""
     from crossline.io.capture import read_frames_table

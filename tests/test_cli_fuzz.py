@@ -77,9 +77,10 @@ larger than 0" drawing their legend; build_report now refuses links out and chec
 frames.csv with the capture's reader, naming the row. A flat nominal mesh (all vertices in
 one plane) exited 3 with Open3D's qhull error in the coarse alignment; nominal_align._fpfh
 now says the surface is flat and asks for a datum (the report goes on without the
-comparison). Left (xfail, strict): fuse on a frames.csv without one of the points' frames
-(its last frame renumbered) says "pose refinement: frame(s) [23] of the points are not in
-the scan's frames table", naming no file (crossline/fuse_refine.py, _frame_times).
+comparison). Fuse on a frames.csv without one of the points' frames (its last frame
+renumbered) said "pose refinement: frame(s) [23] of the points are not in the scan's frames
+table", naming no file; run_fuse now checks the points' frames against the table first
+(fuse_inputs._frames_in_table) and names frames.csv.
 """
 
 from __future__ import annotations
@@ -1130,8 +1131,6 @@ for _command in CASES:
         globals()[_test.__name__] = _test
 
 
-@pytest.mark.xfail(strict=True, reason="crossline/fuse_refine.py _frame_times: 'pose refinement: frame(s) "
-                   "[23] of the points are not in the scan's frames table' names no file (frames.csv)")
 def test_fuse_frames_table_without_a_frame_of_the_points(env: Env, products: Path) -> None:
     """The last row of frames.csv renumbered (frame 23 -> 1023): the points' frame 23 is not in
     the table, and fuse's refusal must name the table."""
