@@ -58,7 +58,8 @@ def run_rig(preset: str, seed: int) -> dict:
              "--lasers", str(cal / "lasers.json"), "--handeye", str(cal / "handeye.json"), "--out", str(pts)],
             ["fuse", str(pts), "--out", str(processed / f"{s}.ply"), "--stats",
              str(processed / f"{s}.fuse.json"), "--refine-poses", "true",
-             "--frames", str(cap / "scans" / s / "frames.csv"), "--threads", "2"],
+             "--frames", str(cap / "scans" / s / "frames.csv"), "--threads", "2",
+             "--arm-draws", "64", "--arm-draws-out", str(processed / f"{s}.arm.npz")],
         ]
     steps.append(["report", str(cap), "--interim", str(interim), "--processed", str(processed),
                   "--pdf", str(work / "accuracy.pdf"), "--metrics", str(work / "metrics.json")])

@@ -57,6 +57,12 @@ def _fuse(p: argparse.ArgumentParser) -> None:
     p.add_argument("--crossing-max-width-ratio", type=float, default=2.0,
                    help="centres whose column cut is longer than this x their laser's median make "
                         "no crossings (0: any)")
+    p.add_argument("--arm-draws", type=int, default=64,
+                   help="with --arm-draws-out: draw the arm's pose errors left in the cloud this "
+                        "many times (the refinement's posterior, else the arm's precision above), "
+                        "for the report's uncertainty (0: none)")
+    p.add_argument("--arm-draws-out", type=Path,
+                   help="the draws' file to write (.npz; written empty with --arm-draws 0)")
     _threads(p)
 
     def run(a: argparse.Namespace) -> int:
@@ -70,7 +76,8 @@ def _fuse(p: argparse.ArgumentParser) -> None:
             arm_precision_rad=a.arm_precision_rad, arm_smooth_fraction=a.arm_smooth_fraction,
             arm_corr_time_s=a.arm_corr_time_s, crossing_half_mm=a.crossing_half_mm,
             crossing_min_angle_deg=a.crossing_min_angle_deg,
-            crossing_max_width_ratio=a.crossing_max_width_ratio,
+            crossing_max_width_ratio=a.crossing_max_width_ratio, arm_draws=a.arm_draws,
+            arm_draws_out=a.arm_draws_out,
         )
         return 0
 

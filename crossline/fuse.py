@@ -47,10 +47,11 @@ import numpy as np
 from crossline.camera_centres import FrameMoments as FrameMoments
 from crossline.camera_centres import camera_centres
 from crossline.errors import StageError
-from crossline.fuse_inputs import _read_frames, _same_scan, read_points_columns
+from crossline.fuse_inputs import _frames_in_table, _read_frames, _same_scan, read_points_columns
 from crossline.fuse_mesh import make_mesh
 from crossline.fuse_normals import _slab_normals, orient_normals
-from crossline.fuse_refine import _refine
+from crossline.fuse_refine import _prior_draws, _refine
+from crossline.io.arm_draws import ArmDraws, write_arm_draws
 from crossline.io.atomic import write_json
 from crossline.io.ply import read_ply, write_ply, write_stl
 from crossline.scan.refine import HALF_MM, MAX_WIDTH_RATIO, MIN_ANGLE_DEG, ArmPrior, usable_centres
@@ -87,6 +88,8 @@ class FusedCloud:
     laser: np.ndarray  # uint8: 1 = A, 2 = B, 0 = unknown
     frame: np.ndarray  # int32: the frame the point (or the first point of its voxel) came from
     stats: dict[str, Any] = field(default_factory=dict, compare=False)
+    # the arm's pose errors left, drawn per frame (for the report's uncertainty), or None
+    arm: ArmDraws | None = field(default=None, compare=False)
 
     def laser_labels(self) -> np.ndarray:
         """Laser of each point as ``"A"``, ``"B"`` or ``"?"``."""
@@ -180,6 +183,8 @@ def fuse_cloud(
     crossing_max_width_ratio: float = MAX_WIDTH_RATIO,
     threads: int = 1,
     cameras: tuple[np.ndarray, np.ndarray] | None = None,
+    arm_draws: int = 0,
+    arm_prior: ArmPrior | None = None,
 ) -> FusedCloud:
     """Optional pose refinement, statistical outlier removal, optional voxel down-sampling
     (per laser), oriented normals.
@@ -196,7 +201,9 @@ def fuse_cloud(
     ``crossing_max_width_ratio`` x their laser's median make no crossings
     (:func:`crossline.scan.refine.usable_centres`). ``cameras`` = (sorted frames, camera
     centres (F, 3) in the base frame, e.g. from :class:`FrameMoments`) stands in for
-    ``points_cam`` where the scan is too long to hold those.
+    ``points_cam`` where the scan is too long to hold those. ``arm_draws`` > 0 draws the arm's
+    pose errors left in the cloud (``FusedCloud.arm``): from the refinement's posterior, or
+    where the poses are not refined from ``arm_prior`` (default ``refine_prior``).
     """
     p = np.ascontiguousarray(points, dtype=np.float64)
     lab = np.asarray(laser)
@@ -221,11 +228,15 @@ def fuse_cloud(
                                       "refinement needs stripes of both lasers to cross "
                                       "(arm poses used as reported)"}
         log.info("pose refinement skipped: %s", stats["refine"]["skipped"])
-    elif refine_prior is not None:
+    arm = None
+    if refine_prior is not None and not lacking:
         mask = None if widths is None else usable_centres(lab, widths, crossing_max_width_ratio)
-        p, cameras, stats["refine"] = _refine(p, lab, fr, cameras, refine_prior, frame_table,
-                                              threads, crossing_half_mm, crossing_min_angle_deg,
-                                              mask)
+        p, cameras, stats["refine"], arm = _refine(
+            p, lab, fr, cameras, refine_prior, frame_table, threads, crossing_half_mm,
+            crossing_min_angle_deg, mask, draws=arm_draws)
+    elif arm_draws > 0 and (arm_prior is not None or refine_prior is not None):
+        arm = _prior_draws(fr, cameras, arm_prior if arm_prior is not None else refine_prior,
+                           frame_table, arm_draws, 0)
 
     if neighbours > 0 and len(p) > neighbours:
         # Open3D's test, slab by slab (crossline.tiles): the same points kept, a bounded memory
@@ -260,7 +271,9 @@ def fuse_cloud(
     if len(vp):
         stats["bbox_min_mm"] = vp.min(0).tolist()
         stats["bbox_max_mm"] = vp.max(0).tolist()
-    return FusedCloud(vp, normals, vlab, vfr.astype(np.int32, copy=False), stats)
+    if arm is not None:
+        stats["arm_draws"] = {"draws": len(arm.draws), "frames": len(arm.frames), "kind": arm.kind}
+    return FusedCloud(vp, normals, vlab, vfr.astype(np.int32, copy=False), stats, arm)
 
 
 def _by_laser(codes: np.ndarray) -> dict[str, int]:
@@ -295,6 +308,8 @@ def run_fuse(
     crossing_half_mm: float = HALF_MM,
     crossing_min_angle_deg: float = MIN_ANGLE_DEG,
     crossing_max_width_ratio: float = MAX_WIDTH_RATIO,
+    arm_draws: int = 64,
+    arm_draws_out: Path | None = None,
 ) -> FusedCloud:
     """The ``fuse`` stage: points parquet -> fused PLY (+ stats JSON, + STL mesh if asked).
 
@@ -307,6 +322,9 @@ def run_fuse(
     stripe length fitted either side of a crossing, ``crossing_min_angle_deg`` the smallest
     crossing angle used, ``crossing_max_width_ratio`` the longest column cut (over its
     laser's median) whose centre may make a crossing (0: any; needs the points' ``width``).
+    With ``arm_draws_out``, the arm's pose errors left in the cloud are drawn ``arm_draws``
+    times (the refinement's posterior, or the prior above where the poses are not refined) and
+    written there (:mod:`crossline.io.arm_draws`), for the report's uncertainty.
     """
     points = Path(points)
     if not points.is_file():
@@ -318,8 +336,12 @@ def run_fuse(
             f"fuse parameters out of range: neighbours={neighbours} (>= 0), std_ratio={std_ratio} "
             f"(> 0), voxel_mm={voxel_mm} (>= 0), normal_radius_mm={normal_radius_mm} (> 0)"
         )
+    if arm_draws < 0:
+        raise StageError(f"fuse parameters out of range: arm_draws={arm_draws} (>= 0)")
+    if arm_draws_out is None:
+        arm_draws = 0  # nowhere to write them: not drawn
     prior = None
-    if refine_poses:
+    if refine_poses or arm_draws > 0:
         try:
             prior = ArmPrior.from_precision(arm_precision_mm, arm_precision_rad,
                                             smooth_fraction=arm_smooth_fraction,
@@ -336,16 +358,18 @@ def run_fuse(
                 f"pose refinement parameters out of range: crossing_half_mm={crossing_half_mm} "
                 f"(> 0), crossing_min_angle_deg={crossing_min_angle_deg} (0..90), "
                 f"crossing_max_width_ratio={crossing_max_width_ratio} (>= 0, 0 = off)")
-    table = _read_frames(frames) if refine_poses and frames is not None else None
+    table = _read_frames(frames) if (refine_poses or arm_draws > 0) and frames is not None else None
     cols = read_points_columns(points)
     if table is not None:
         _same_scan(points, Path(frames), len(table[0]))
+        _frames_in_table(points, Path(frames), cols["frame"], table[0])
     n_non_finite = int(cols["non_finite"])
     # popped, so that fuse_cloud holds the only reference and can let each array go
     cloud = fuse_cloud(
         cols.pop("xyz"), cols.pop("laser"), cols.pop("frame"), cameras=cols.pop("cameras", None),
         neighbours=neighbours, std_ratio=std_ratio, voxel_mm=voxel_mm,
-        normal_radius_mm=normal_radius_mm, refine_prior=prior, frame_table=table,
+        normal_radius_mm=normal_radius_mm, refine_prior=prior if refine_poses else None,
+        frame_table=table, arm_draws=arm_draws, arm_prior=prior,
         crossing_half_mm=crossing_half_mm, crossing_min_angle_deg=crossing_min_angle_deg,
         widths=cols.pop("width", None), crossing_max_width_ratio=crossing_max_width_ratio,
         threads=threads,
@@ -354,14 +378,24 @@ def run_fuse(
     cloud.stats["parameters"] = {"neighbours": neighbours, "std_ratio": std_ratio,
                                  "voxel_mm": voxel_mm, "normal_radius_mm": normal_radius_mm,
                                  "mesh": mesh, "refine_poses": bool(refine_poses)}
-    if refine_poses:
+    if prior is not None:
         cloud.stats["parameters"].update(
             arm_precision_mm=arm_precision_mm, arm_precision_rad=arm_precision_rad,
-            arm_smooth_fraction=arm_smooth_fraction, arm_corr_time_s=arm_corr_time_s,
+            arm_smooth_fraction=arm_smooth_fraction, arm_corr_time_s=arm_corr_time_s)
+    if refine_poses:
+        cloud.stats["parameters"].update(
             crossing_half_mm=crossing_half_mm, crossing_min_angle_deg=crossing_min_angle_deg,
             crossing_max_width_ratio=crossing_max_width_ratio,
             frames_file=None if frames is None else Path(frames).name)
     cloud.stats["points_file"] = points.name
+    if arm_draws_out is not None:
+        cloud.stats["parameters"]["arm_draws"] = arm_draws
+        if cloud.arm is None and arm_draws > 0:
+            cloud.stats["arm_draws"] = {"skipped": "no frame could be placed (neither a frames "
+                                                   "table nor the points' camera coordinates)"}
+        # written even without draws (none asked, or none possible): the workflow's output
+        write_arm_draws(arm_draws_out, cloud.arm if cloud.arm is not None else ArmDraws(
+            np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 0, 6), np.float32), "prior"))
     write_ply(out, cloud)
     if mesh != "none":
         V, F = make_mesh(cloud, mesh, threads=threads)

@@ -15,18 +15,55 @@ from typing import Any
 import numpy as np
 
 from crossline.errors import StageError
+from crossline.io.arm_draws import ArmDraws
 from crossline.scan.refine import ArmPrior
 
 log = logging.getLogger("crossline.fuse")
 
 
+def _frame_times(frames: np.ndarray,
+                 frame_table: tuple[np.ndarray, np.ndarray, np.ndarray] | None, what: str,
+                 ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Times (F,) and flange origins (F, 3) of ``frames`` from the frames table (None, None
+    without one); StageError naming ``what`` needed them where a frame is not in the table."""
+    if frame_table is None:
+        return None, None
+    tf, tt, to = (np.asarray(a) for a in frame_table)
+    order = np.argsort(tf, kind="stable")
+    tf, tt, to = tf[order], tt[order], to[order]
+    pos = np.clip(np.searchsorted(tf, frames), 0, max(len(tf) - 1, 0))
+    missing = frames if len(tf) == 0 else frames[tf[pos] != frames]
+    if len(missing):
+        raise StageError(f"{what}: frame(s) {missing[:5].tolist()} of the points are not in the "
+                         "scan's frames table")
+    return tt[pos].astype(np.float64), to[pos].astype(np.float64)
+
+
+def _prior_draws(fr: np.ndarray, cameras: tuple[np.ndarray, np.ndarray] | None, prior: ArmPrior,
+                 frame_table: tuple[np.ndarray, np.ndarray, np.ndarray] | None, draws: int,
+                 seed: int) -> ArmDraws | None:
+    """The arm's pose errors drawn from its prior, for a scan whose poses were not refined
+    (None where no frame can be placed: neither a frames table nor camera centres)."""
+    from crossline.scan.refine_prior import prior_draws
+
+    frames = np.unique(fr) if cameras is None else np.asarray(cameras[0])
+    times, origins = _frame_times(frames, frame_table, "the arm's uncertainty draws")
+    if origins is None:
+        if cameras is None:
+            return None
+        origins = np.asarray(cameras[1], dtype=np.float64)  # the camera centre stands in
+    d = prior_draws(times, prior, len(frames), draws, np.random.default_rng(seed)) * prior.sigmas()
+    return ArmDraws(frames, origins, d.astype(np.float32), "prior")
+
+
 def _refine(
     p: np.ndarray, lab: np.ndarray, fr: np.ndarray, cameras: tuple[np.ndarray, np.ndarray] | None,
     prior: ArmPrior, frame_table: tuple[np.ndarray, np.ndarray, np.ndarray] | None, threads: int,
-    half_mm: float, min_angle_deg: float, crossing_mask: np.ndarray | None,
-) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], dict[str, Any]]:
-    """Points with refined per-frame poses, the camera centres moved with them, and the stats
-    of the refinement (JSON-ready)."""
+    half_mm: float, min_angle_deg: float, crossing_mask: np.ndarray | None, draws: int = 0,
+    seed: int = 0,
+) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], dict[str, Any], ArmDraws | None]:
+    """Points with refined per-frame poses, the camera centres moved with them, the stats
+    of the refinement (JSON-ready) and ``draws`` of the errors it leaves (its posterior)."""
     from crossline.scan.refine import correction_transforms, refine_frames
 
     if cameras is None:
@@ -34,20 +71,10 @@ def _refine(
                          "z_cam) to place each frame's camera, and a frame with enough "
                          "non-collinear points to place it; the points file has neither")
     frames, views = cameras
-    times = origins = None
-    if frame_table is not None:
-        tf, tt, to = (np.asarray(a) for a in frame_table)
-        order = np.argsort(tf, kind="stable")
-        tf, tt, to = tf[order], tt[order], to[order]
-        pos = np.clip(np.searchsorted(tf, frames), 0, max(len(tf) - 1, 0))
-        missing = frames if len(tf) == 0 else frames[tf[pos] != frames]
-        if len(missing):
-            raise StageError(f"pose refinement: frame(s) {missing[:5].tolist()} of the points are "
-                             "not in the scan's frames table")
-        times, origins = tt[pos].astype(np.float64), to[pos].astype(np.float64)
+    times, origins = _frame_times(frames, frame_table, "pose refinement")
     ref = refine_frames(fr, lab, p, views, prior, frames=frames, times=times, origins=origins,
                         half_mm=half_mm, min_angle_deg=min_angle_deg, crossing_mask=crossing_mask,
-                        threads=threads)
+                        threads=threads, draws=draws, seed=seed)
     d = dict(ref.diagnostics)
     # timings go to the log, not to the stats: the same points must give the same bytes
     log.info("pose refinement: %d crossings, %d frames, %.2f s (crossings %.2f s)", d["crossings"],
@@ -72,4 +99,6 @@ def _refine(
     # every point of a frame moves with it, so its camera centre does too
     C = correction_transforms(ref.rotation, ref.translation, ref.origins)
     moved = np.einsum("fij,fj->fi", C[:, :3, :3], views) + C[:, :3, 3]
-    return ref.points, (frames, moved), info
+    post = None if ref.posterior is None else ArmDraws(frames, ref.origins, ref.posterior,
+                                                       "posterior")
+    return ref.points, (frames, moved), info, post

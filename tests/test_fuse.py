@@ -232,6 +232,42 @@ def test_run_fuse_refines_the_poses(posed_plate, tmp_path):
     assert st["parameters"]["crossing_max_width_ratio"] == 2.0
 
 
+def test_run_fuse_draws_the_arm_error_it_leaves(posed_plate, tmp_path):
+    """With --arm-draws-out, fuse writes draws of every frame's remaining pose error: the
+    refinement's posterior (narrower than the prior along what the plate's crossings see: the
+    height and the two tilts), or without refinement the arm's prior itself; reproducibly."""
+    from crossline.io.arm_draws import read_arm_draws
+    from tests.test_refine import PRIOR
+
+    pq, frames = posed_plate / "plate.parquet", posed_plate / "frames.csv"
+    for k in ("a", "b"):
+        run_fuse(pq, tmp_path / f"{k}.ply", refine_poses=True, frames=frames, arm_draws=48,
+                 arm_draws_out=tmp_path / f"{k}.npz")
+    assert _sha(tmp_path / "a.npz") == _sha(tmp_path / "b.npz")
+    post = read_arm_draws(tmp_path / "a.npz")
+    table = pd.read_csv(frames)
+    assert post.kind == "posterior" and post.draws.shape == (48, 60, 6)
+    assert np.array_equal(post.frames, np.arange(60))
+    assert np.allclose(post.origins, table[["x", "y", "z"]].to_numpy())  # the flange's
+    sd = post.draws.std(axis=(0, 1)) / PRIOR.sigmas()
+    # frame against frame (each draw's error common to all frames taken out: that moves the
+    # whole plate rigidly and nothing sees it) a plate z = 0 sees the height (0.11 of the
+    # prior's sigma here) and the tilts about x, y (0.41), not its in-plane shifts and turn
+    # (0.74-0.81, the prior's own spread between frames); those stay at the prior (0.96-1.08)
+    rel = (post.draws - post.draws.mean(axis=1, keepdims=True)).std(axis=(0, 1)) / PRIOR.sigmas()
+    assert rel[5] < 0.2 and rel[:2].max() < 0.6 and rel[2:5].min() > 0.65
+    assert np.all((sd[2:5] > 0.8) & (sd[2:5] < 1.2))
+    run_fuse(pq, tmp_path / "c.ply", frames=frames, arm_draws=48, arm_draws_out=tmp_path / "c.npz",
+             arm_precision_mm=0.04)
+    prior = read_arm_draws(tmp_path / "c.npz")
+    assert prior.kind == "prior" and prior.draws.shape == (48, 60, 6)
+    assert np.allclose(prior.draws.std(axis=(0, 1)) / (2 * PRIOR.sigmas()), 1.0, atol=0.15)
+    run_fuse(pq, tmp_path / "d.ply", arm_draws=0, arm_draws_out=tmp_path / "d.npz")
+    assert read_arm_draws(tmp_path / "d.npz").draws.shape[0] == 0
+    with pytest.raises(StageError, match="arm_draws=-1"):
+        run_fuse(pq, tmp_path / "x.ply", arm_draws=-1, arm_draws_out=tmp_path / "x.npz")
+
+
 def test_run_fuse_keeps_long_cut_centres_out_of_the_crossings(posed_plate, tmp_path):
     df = pd.read_parquet(posed_plate / "plate.parquet")
     long_cut = np.arange(len(df)) % 10 == 0

@@ -43,7 +43,8 @@ def quick_pipeline(quick_capture, tmp_path_factory):
              "--out", str(pts)],
             ["fuse", str(pts), "--out", str(root / "processed" / f"{s}.ply"), "--stats",
              str(root / "processed" / f"{s}.fuse.json"), "--refine-poses", "true",
-             "--frames", str(quick_capture / "scans" / s / "frames.csv")],
+             "--frames", str(quick_capture / "scans" / s / "frames.csv"), "--arm-draws", "32",
+             "--arm-draws-out", str(root / "processed" / f"{s}.arm.npz")],
         ]
     for argv in steps:
         assert main(argv) == 0, f"stage failed: crossline {' '.join(argv)}"
@@ -100,11 +101,13 @@ def test_quick_report_every_section_and_same_bytes(quick_pipeline):
     assert {r["id"] for r in m["summary"]} >= {"gauge_mean_error_mm", "gauge_std_mm",
                                                "ab_height_difference_mm", "plane_within_share",
                                                "sphere_size_error_mm", "sphere_form_error_mm"}
-    # every calibration of a real run carries its covariance: U has all four contributors,
+    # every calibration of a real run carries its covariance: U has all five contributors,
     # and the gauge's true error lies within it (its U is some microns, its error less)
     for name in ("gauge", "plate", "ball"):
         unc = m["scans"][name]["uncertainty"]
         assert "incomplete" not in unc, (name, unc.get("incomplete"))
+        # the arm's error left by the pose refinement, drawn from its posterior by fuse
+        assert unc["arm_draws"] == {"draws": 32, "kind": "posterior"}, name
         for key, f in unc["figures"].items():
             if key != "share_within_band":  # every plate point is within the band: u = 0
                 assert all(f["budget"][c]["u"] > 0 for c in f["budget"]), (name, key, f["budget"])
@@ -173,3 +176,4 @@ def test_quick_report_pages_show_metrics(quick_pipeline):
                  "sphere": [("diameter_mm", "mm"), ("form_error_d95_mm", "mm")]}
         for key, unit in shown.get(s["artefact"], []):
             assert fmt(meas[key], unit) in page, (name, key)
+

@@ -124,6 +124,58 @@ def _scan(raw: Path, interim: Path, scan: str, model: uc.CalibrationModel) -> uc
                           df["frame"].to_numpy(), ft.frames, ft.T_base_tool, model)
 
 
+def _arm_draws(raw: Path, scan: str, processed: Path, draws: int, seed: int = 0):
+    """Write draws of the arm's error for ``scan`` from a 0.02 mm arm's prior, as fuse does
+    for a scan it does not refine; return them."""
+    from crossline.io.arm_draws import ArmDraws, write_arm_draws
+    from crossline.scan.refine_prior import ArmPrior, prior_draws
+
+    ft = read_frames_table(raw / "scans" / scan / "frames.csv")
+    order = np.argsort(ft.frames)
+    prior = ArmPrior.from_precision(0.02)
+    d = prior_draws(ft.time_s[order], prior, len(order), draws, np.random.default_rng(seed))
+    a = ArmDraws(ft.frames[order].astype(np.int64), ft.T_base_tool[order, :3, 3],
+                 (d * prior.sigmas()).astype(np.float32), "prior")
+    write_arm_draws(processed / f"{scan}.arm.npz", a)
+    return a
+
+
+def test_arm_draws_move_each_point_with_its_frames_pose_error(synthetic, tmp_path) -> None:
+    """A drawn pose error (ω, t) about the flange moves a point as the rigid motion that the
+    pose refinement's correction undoes (crossline.scan.refine.correction_transforms), to first
+    order; the draws survive their file (float16, scaled) to 1e-3 of their spread; an error
+    common to every frame (the whole scan moved rigidly) leaves the ball's size as it was."""
+    from crossline.geometry import transform_points
+    from crossline.io.arm_draws import ArmDraws, read_arm_draws
+    from crossline.scan.refine import correction_transforms
+
+    raw, interim = synthetic
+    model = _model(np.random.default_rng(1))
+    sp = _scan(raw, interim, "ball", model)
+    a = _arm_draws(raw, "ball", tmp_path, draws=8)
+    back = read_arm_draws(tmp_path / "ball.arm.npz")
+    assert np.array_equal(back.frames, a.frames) and back.kind == "prior"
+    assert np.abs(back.draws - a.draws).max() < 1e-3 * a.draws.reshape(-1, 6).std(0).max()
+    move = uc.arm_moves(sp, back)
+    k = np.searchsorted(back.frames, sp.frame)
+    for d in (0, 5):
+        e = back.draws[d].astype(np.float64)
+        C = correction_transforms(e[:, :3], e[:, 3:], back.origins)
+        want = sp.points - transform_points(C, sp.points, k)
+        got = move(d)
+        assert np.abs(got - want).max() < 1e-3 * np.abs(want).max()
+    # one error for all frames, about one origin: a rigid motion of the whole scan
+    one = np.broadcast_to(a.draws[:, :1], a.draws.shape) * 50.0
+    rigid = ArmDraws(a.frames, np.broadcast_to(a.origins[:1], a.origins.shape), one, "prior")
+    own = ArmDraws(a.frames, a.origins, a.draws * 50.0, "prior")  # each frame its own error
+    s = uc.sphere_figures(mt.measure_sphere(sp.points, 25.0))
+    bare = replace(model, camera_cov=None, plane_cov={}, X_cov=None)
+    u_rigid, u_own = (uc.monte_carlo(sp, bare, s, draws=24, seed=2, arm=arm)["diameter_mm"][
+        "budget"]["arm"]["u"] for arm in (rigid, own))
+    # what is left of the rigid motion is the draws' linearisation (second order in ω)
+    assert u_rigid < 0.01 * u_own and u_own > 1e-3
+
+
 def test_unperturbed_calibration_gives_back_the_points(synthetic) -> None:
     raw, interim = synthetic
     model = _model(np.random.default_rng(1))
@@ -209,11 +261,14 @@ def test_report_gives_U_and_decision_where_the_calibration_has_covariances(synth
     he = json.loads((cal / "handeye.json").read_text())
     he["methods"]["refined"]["uncertainty"] = {"covariance_X": model.X_cov.tolist()}
     (out / "calibration" / "handeye.json").write_text(json.dumps(he))
+    for scan in ("gauge", "ball"):  # the fuse stage's draws of the arm's error, from its prior
+        _arm_draws(raw, scan, tmp_path / "processed", draws=16)
     data = build_report(raw, out, tmp_path / "processed",
                         {"report": {"metrology": {"uncertainty_draws": 60}}})
     m = data.metrics
     unc = m["scans"]["gauge"]["uncertainty"]
     assert unc["draws"] == 60 and "incomplete" not in unc
+    assert unc["arm_draws"] == {"draws": 16, "kind": "prior"}
     f = unc["figures"]["mean_mm"]
     assert f["value"] == pytest.approx(m["scans"]["gauge"]["measurement"]["mean_mm"])
     assert all(f["budget"][c]["u"] > 0 for c in uc.CONTRIBUTORS)
@@ -244,9 +299,10 @@ def test_report_gives_U_and_decision_where_the_calibration_has_covariances(synth
     data = build_report(raw, interim, tmp_path / "processed2",
                         {"report": {"metrology": {"uncertainty_draws": 30}}})
     unc = data.metrics["scans"]["gauge"]["uncertainty"]
-    assert len(unc["incomplete"]) == 4  # camera, planes A and B, hand-eye
+    assert len(unc["incomplete"]) == 5  # camera, planes A and B, hand-eye, the arm's draws
+    assert "gauge.arm.npz" in unc["incomplete"][-1]
     b = unc["figures"]["mean_mm"]["budget"]
-    assert b["camera"]["u"] == b["laser_planes"]["u"] == b["handeye"]["u"] == 0
+    assert b["camera"]["u"] == b["laser_planes"]["u"] == b["handeye"]["u"] == b["arm"]["u"] == 0
     assert b["repeatability"]["u"] > 0
 
 

@@ -149,13 +149,19 @@ def _uncertainty(sd: ScanData, figures: Any, model: Any, met: dict, root: Path) 
                         table.frames, table.T_base_tool, model)
     draws = int(met["uncertainty_draws"])
     out = {"figures": uc.monte_carlo(sp, model, figures(subset=sub), draws=draws,
-                                     seed=int(met["seed"])),
+                                     seed=int(met["seed"]), arm=sd.arm),
            "draws": draws, "frames": sp.n_frames, "points": len(sp.points),
            "points_of_cloud": len(c["points"]),
            "contributors": list(uc.CONTRIBUTORS), "coverage_factor": uc.COVERAGE_FACTOR,
            "method": uc.METHOD}
-    if model.missing:
-        out["incomplete"] = list(model.missing)
+    missing = list(model.missing)
+    if sd.arm is None:
+        missing.append(f"{sd.arm_error or 'no arm draws'}: the arm's pose error that the frames "
+                       "of a pass share is not drawn")
+    else:
+        out["arm_draws"] = {"draws": len(sd.arm.draws), "kind": sd.arm.kind}
+    if missing:
+        out["incomplete"] = missing
     return out
 
 

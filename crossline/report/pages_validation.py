@@ -270,7 +270,7 @@ UNCERTAINTY_FIGURES = {"mean_mm": "gauge height (mean)", "flatness_mm": "flatnes
                        "form_error_vdi_mm": "form error (VDI/VDE 2634-2, 0.3 % discarded)",
                        "form_error_p95_mm": "form error (2.5–97.5 %)",
                        "length_mm": "ball bar: centre distance (SD)"}
-BUDGET = {"camera": "camera", "laser_planes": "planes", "handeye": "hand-eye",
+BUDGET = {"camera": "camera", "laser_planes": "planes", "handeye": "hand-eye", "arm": "arm",
           "repeatability": "frames"}
 
 
@@ -285,9 +285,11 @@ def page_uncertainty(m: dict[str, Any]) -> Figure | None:
     p.text(f"GUM Supplement 1 Monte Carlo, {first.get('draws', '–')} draws per contributor and as "
            "many of all together. Each draw re-triangulates the scan's own stripe centres with a "
            "calibration drawn from the calibration's covariances (camera intrinsics and "
-           "distortion, both laser planes, hand-eye X) and draws the scan's frames again with "
-           "replacement (repeatability: stripe noise, speckle and the arm's pose noise as this "
-           "scan realised them); the figure is measured again with the report's definition and "
+           "distortion, both laser planes, hand-eye X), moves every frame by a draw of the arm's "
+           "pose error left in it (arm: the pose refinement's posterior, else the arm's stated "
+           "precision) and draws the scan's frames again with replacement (frames: stripe "
+           "noise, speckle and the arm's pose noise as this scan realised them); the figure is "
+           "measured again with the report's definition and "
            "segmentation. U = 2 u of all together; the 95 % interval of the draws, from the value; "
            "u: the standard uncertainty of each contributor alone. Lengths in µm, shares in %.",
            size=8)
@@ -308,10 +310,10 @@ def page_uncertainty(m: dict[str, Any]) -> Figure | None:
     if cells:
         p.table(["Scan", "Figure", "Value", "U", "95 % interval − value",
                  *[f"u {v}" for v in BUDGET.values()], "Dominant"], cells,
-                [LEFT, LEFT + 0.07, LEFT + 0.24, LEFT + 0.35, LEFT + 0.42, LEFT + 0.56, LEFT + 0.63,
-                 LEFT + 0.69, LEFT + 0.76, LEFT + 0.82], size=6.8,
+                [LEFT, LEFT + 0.07, LEFT + 0.23, LEFT + 0.32, LEFT + 0.39, LEFT + 0.52, LEFT + 0.58,
+                 LEFT + 0.64, LEFT + 0.70, LEFT + 0.76, LEFT + 0.82], size=6.8,
                 aligns=["left", "left", "right", "right", "right", "right", "right", "right",
-                        "right", "left"])
+                        "right", "right", "left"])
     for name, why in errors.items():
         p.text(f"{name}: no uncertainty: {why}", size=7.5, color=COLOURS["N/A"])
     for name, unc in scans.items():
@@ -333,14 +335,14 @@ def page_uncertainty(m: dict[str, Any]) -> Figure | None:
                 aligns=["left", "left", "right", "right", "left"])
     p.gap(0.1)
     p.text("What U covers, and what it does not", size=10, weight="bold")
-    p.text("Covered: the calibration's own noise (as its fits estimate it) and the scan's "
-           "repeatability; a camera draw moves the laser planes with it, as they were fitted "
-           "through it. Not covered: hand-eye's share of the camera's error (drawn "
-           "independently), the camera's model error where distortion terms were fixed, "
-           "the arm's systematic error beyond what hand-eye absorbed, the arm's slow pose "
-           "drift that pose refinement leaves (resampling frames sees each frame's own error, "
-           "not one shared by the frames of a pass: it shows in a ball bar's SD and a "
-           "sphere's size), biases of the stripe "
+    p.text("Covered: the calibration's own noise (as its fits estimate it), the arm's pose "
+           "error that pose refinement leaves (drawn from its posterior: the drift the frames of "
+           "a pass share) and the scan's repeatability; a camera draw moves the laser planes with "
+           "it, as they were fitted through it. Not covered: hand-eye's share of the camera's "
+           "error (drawn independently), the camera's model error where distortion terms were "
+           "fixed, the arm's systematic error beyond what hand-eye absorbed, an arm less "
+           "precise than its stated precision (fuse.arm_precision_mm, the draws' prior), "
+           "biases of the stripe "
            "centres with the angle of incidence (see the sphere's size by incidence), the "
            "artefact's own calibration and temperature. How often the true value lies within "
            "±U on simulated captures: benchmarks/bench_uncertainty.py.", size=8)

@@ -54,6 +54,8 @@ class ScanData:
     mesh: str | None = None  # a freeform's nominal mesh, relative to the capture
     T_base_nominal: np.ndarray | None = None  # its placement as rig.yaml gives it (a datum)
     plots: dict[str, Any] = field(default_factory=dict)
+    arm: Any = None  # the fuse stage's ArmDraws (crossline.io.arm_draws), or None
+    arm_error: str | None = None  # why there are none
 
 
 def points_per_frame(
@@ -157,4 +159,20 @@ def _load_scan(
             files.append(("processed", cand.name, cand))
             sd.fuse_stats = _read_json(cand)
             break
+    arm = processed / f"{name}.arm.npz"
+    if arm.is_file():
+        from crossline.errors import CrosslineError
+        from crossline.io.arm_draws import read_arm_draws
+
+        files.append(("processed", arm.name, arm))
+        try:
+            sd.arm = read_arm_draws(arm)
+        except CrosslineError as exc:
+            sd.arm_error = str(exc)
+            log.warning("%s", exc)
+        else:
+            if len(sd.arm.draws) == 0:
+                sd.arm, sd.arm_error = None, f"{arm.name} holds no draws (fuse.arm_draws: 0)"
+    else:
+        sd.arm_error = f"no {arm.name} (the fuse stage's draws of the arm's pose errors)"
     return sd

@@ -8,9 +8,16 @@ What is drawn, and what is not:
   (``lasers.json`` ``<laser>.covariance``: the fit's own or the scatter between poses);
 * **hand-eye**: ``X`` from its refinement's covariance (``handeye.json``
   ``methods.refined.uncertainty.covariance_X``), ``X_true = X exp(ω, t)``;
+* **arm**: every frame's arm pose error left in the cloud, drawn by the fuse stage
+  (``<scan>.arm.npz``, :mod:`crossline.io.arm_draws`): from the pose refinement's posterior
+  (perturb-and-MAP on its normal equations) where the scan was refined, else from the arm's
+  prior (its stated precision, a drift correlated in time plus a white part); each point moves
+  with its frame's drawn error. This is the error the frames of one pass share, which no
+  resampling of frames sees;
 * **repeatability**: the scan's frames drawn again with replacement (a bootstrap over frames):
   what the stripe centres' noise, the speckle and the arm's pose noise of each frame do to a
-  figure, as this scan realised them.
+  figure, as this scan realised them (the arm's white part is thus counted twice, once here
+  and once in ``arm``: a small overstatement, on the safe side).
 
 Each draw re-triangulates the scan's own stripe centres: every point of the report's cloud is
 carried back to its camera frame and pixel with the calibration it was made with, then forward
@@ -21,11 +28,9 @@ moves the laser planes with it (each plane's camera Jacobian: the boards' poses 
 points found again with that camera), since the planes were fitted through the camera; the
 planes' own draw adds their fit's noise, and ``X`` is drawn on its own (its share of the
 camera's error is neglected). Not covered: the camera's model error where distortion terms
-were fixed, the arm's systematic (volumetric) error beyond what hand-eye absorbed, the arm's
-slow pose drift that pose refinement leaves (the bootstrap resamples each frame's own error,
-not an error the frames of one pass share: the ball bar's SD and the sphere's size show it on
-simulated captures, benchmarks/results/ball_bar.txt and uncertainty.txt), the nominal
-artefact's own calibration, and temperature.
+were fixed, the arm's systematic (volumetric) error beyond what hand-eye absorbed, an arm
+whose true precision is worse than its stated one (the prior, ``fuse.arm_precision_mm``), the
+nominal artefact's own calibration, and temperature.
 """
 
 from __future__ import annotations
@@ -56,11 +61,13 @@ __all__ = [
     "subsample",
 ]
 
-CONTRIBUTORS = ("camera", "laser_planes", "handeye", "repeatability")
+CONTRIBUTORS = ("camera", "laser_planes", "handeye", "arm", "repeatability")
 COVERAGE_FACTOR = 2.0
 METHOD = ("GUM Supplement 1 Monte Carlo: the scan's stripe centres re-triangulated with the camera, "
           "the laser planes (moved with the camera by their camera Jacobian) and hand-eye X drawn "
-          "from their covariances, and the scan's frames drawn again with replacement; each "
+          "from their covariances, every frame moved by a draw of the arm's pose error left in "
+          "it (the pose refinement's posterior, else the arm's prior), and the scan's frames "
+          "drawn again with replacement; each "
           "figure measured again with the report's definition and segmentation")
 GN_STEPS = 6
 
@@ -170,6 +177,7 @@ class ScanPoints:
     n_frames: int
     R_base_tool: np.ndarray  # (N, 3, 3) the rotation of each point's frame
     p_tool: np.ndarray  # (N, 3) the pixel's point on its plane, in the tool frame (model's X)
+    frame: np.ndarray | None = None  # (N,) each point's frame number (for the arm's draws)
 
 
 def scan_points(
@@ -198,7 +206,7 @@ def scan_points(
     q0 = triangulate(model.camera, model.planes, uv, laser)
     used, fidx = np.unique(k, return_inverse=True)
     return ScanPoints(P, uv, laser, fidx, len(used), T[:, :3, :3],
-                      q0 @ model.X[:3, :3].T + model.X[:3, 3])
+                      q0 @ model.X[:3, :3].T + model.X[:3, 3], frame)
 
 
 def moved_points(sp: ScanPoints, camera: Camera, planes: LaserPlanes, X: np.ndarray) -> np.ndarray:
@@ -351,27 +359,56 @@ def _finite_std(x: np.ndarray, enough: bool) -> float:
     return float(np.std(x, ddof=1)) if enough and x.size >= 2 else float("nan")
 
 
+def arm_moves(sp: ScanPoints, arm: Any) -> Callable[[int], np.ndarray] | None:
+    """How arm draw ``d`` moves each point (N, 3), from the fuse stage's
+    :class:`~crossline.io.arm_draws.ArmDraws` (draw ``d`` modulo their number), or None where
+    there are no draws. A point whose frame has no draw (none should) does not move."""
+    if arm is None or len(arm.draws) == 0 or len(arm.frames) == 0 or sp.frame is None:
+        return None
+    k = np.clip(np.searchsorted(arm.frames, sp.frame), 0, len(arm.frames) - 1)
+    has = arm.frames[k] == sp.frame
+    rel = sp.points - arm.origins[k]
+    D = len(arm.draws)
+
+    def move(d: int) -> np.ndarray:
+        e = arm.draws[d % D][k].astype(np.float64)
+        m = np.cross(e[:, :3], rel) + e[:, 3:]
+        m[~has] = 0.0
+        return m
+
+    return move
+
+
 def monte_carlo(
     sp: ScanPoints, model: CalibrationModel, figures: Figures, *, draws: int = 200, seed: int = 0,
+    arm: Any = None,
 ) -> dict[str, Any]:
     """Value, standard uncertainty, U (k = 2), 95 % interval and budget of each figure.
 
     ``draws`` calibrations (and frame resamplings) for the combined distribution, and as many
     again for each contributor alone (the budget). The value is the figure on the report's
-    points; ``u`` the standard deviation of the combined draws.
+    points; ``u`` the standard deviation of the combined draws. ``arm``, the fuse stage's
+    :class:`~crossline.io.arm_draws.ArmDraws` of the scan, moves each frame's points by a
+    drawn pose error (its draws are reused in turn where they are fewer than ``draws``).
     """
     rng = np.random.default_rng(seed)
     ones = np.ones(len(sp.points))
     value = figures(sp.points, ones)
+    move = arm_moves(sp, arm)
 
     def run(parts: tuple[str, ...]) -> dict[str, np.ndarray]:
         out: dict[str, list[float]] = {k: [] for k in value}
-        calib = [p for p in parts if p != "repeatability"]
-        for _ in range(draws):
+        calib = [p for p in parts if p not in ("repeatability", "arm")]
+        # each run starts the arm's draws at a random one, so the combined run and the arm's
+        # own pair them with different calibrations
+        d0 = int(rng.integers(0, 1 << 30))
+        for i in range(draws):
             P = sp.points
             if calib:
                 cam, planes, X = draw_calibration(model, rng, tuple(calib))
                 P = moved_points(sp, cam, planes, X)
+            if "arm" in parts and move is not None:
+                P = P - move(d0 + i)
             w = ones
             if "repeatability" in parts:
                 w = np.bincount(rng.integers(0, sp.n_frames, sp.n_frames),
@@ -381,7 +418,8 @@ def monte_carlo(
         return {k: np.asarray(v) for k, v in out.items()}
 
     known = {"camera": model.camera_cov is not None, "laser_planes": bool(model.plane_cov),
-             "handeye": model.X_cov is not None, "repeatability": sp.n_frames > 1}
+             "handeye": model.X_cov is not None, "arm": move is not None,
+             "repeatability": sp.n_frames > 1}
     total = run(CONTRIBUTORS)
     # a contributor without a covariance is not drawn: its u is 0, and the model says why
     alone = {c: run((c,)) for c in CONTRIBUTORS if known[c]}

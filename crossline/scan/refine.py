@@ -74,6 +74,8 @@ class Refinement:
     frame_rms: np.ndarray  # (F,) RMS of the correction over each frame's points, mm
     crossings: Crossings
     diagnostics: dict[str, Any] = field(default_factory=dict)
+    # (D, F, 6) the errors left after the solve, drawn from its posterior (ω rad, t mm), or None
+    posterior: np.ndarray | None = None
 
     def transforms(self) -> np.ndarray:
         """Corrections (F, 4, 4): refined p_base = C @ reported p_base; refined T_base_tool = C @ T."""
@@ -110,6 +112,8 @@ def refine_frames(
     crossing_mask: np.ndarray | None = None,
     huber: float = 2.0,
     threads: int = 1,
+    draws: int = 0,
+    seed: int = 0,
 ) -> Refinement:
     """Refine every frame's pose from the crossings of its stripes with other frames' stripes.
 
@@ -121,7 +125,9 @@ def refine_frames(
     ``half_mm`` is the half-length of stripe fitted either side of a crossing and
     ``min_angle_deg`` the smallest angle at which two stripes may cross to be used;
     ``crossing_mask`` (N,) bool, if given, says which points may make crossings (e.g.
-    :func:`usable_centres`); every point is moved with its frame all the same.
+    :func:`usable_centres`); every point is moved with its frame all the same. ``draws`` > 0
+    draws the errors left after the solve from its posterior (``Refinement.posterior``, for the
+    report's uncertainty), reproducibly from ``seed``.
     """
     import time
 
@@ -153,7 +159,8 @@ def refine_frames(
         cr = find_crossings(fpos[use], lab[use], p[use], views, half_mm=half_mm,
                             min_angle_deg=min_angle_deg, threads=threads)
     t1 = time.perf_counter()
-    e, beta, info = solve_errors(cr, org, prior, times, huber=huber)
+    e, beta, info = solve_errors(cr, org, prior, times, huber=huber, draws=draws, seed=seed)
+    posterior = info.pop("posterior", None)
     C = correction_transforms(e[:, :3], e[:, 3:], org)
     out = transform_points(C, p, fpos)
     shift2 = np.sum((out - p) ** 2, axis=1)
@@ -174,4 +181,4 @@ def refine_frames(
         seconds_crossings=t1 - t0,
         seconds=time.perf_counter() - t0,
     )
-    return Refinement(frames, e[:, :3], e[:, 3:], org, out, frame_rms, cr, info)
+    return Refinement(frames, e[:, :3], e[:, 3:], org, out, frame_rms, cr, info, posterior)

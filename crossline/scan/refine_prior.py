@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ArmPrior", "prior_covariance"]
+__all__ = ["ArmPrior", "prior_covariance", "prior_draws"]
 
 LEVER_MM = 300.0  # rotation prior from the position figure: the error spread over one arm link
 
@@ -96,3 +96,26 @@ def _prior_sparse(times: np.ndarray | None, prior: ArmPrior, F: int):
     # white rows (e - s) / sqrt(1 - rho^2); unknowns ordered [e, s]
     return sp.vstack([sp.hstack([eye * w, -eye * w]),
                       sp.hstack([sp.csr_matrix((6 * F, 6 * F)), Ls])]).tocsr(), 12 * F
+
+
+def prior_draws(times: np.ndarray | None, prior: ArmPrior, F: int, draws: int,
+                rng: np.random.Generator) -> np.ndarray:
+    """Draws (draws, F, 6) of the scaled pose errors from the prior itself (unit sigma per axis).
+
+    The prior's process simulated directly, O(draws F): per axis an AR(1) (Gauss-Markov) part
+    of sigma ``smooth_fraction`` over the frames' times plus a white part carrying the rest of
+    the variance, the same model as :func:`prior_covariance` without an F x F matrix.
+    """
+    rho = prior.smooth_fraction
+    white = rng.standard_normal((draws, F, 6))
+    if times is None or rho == 0.0 or F == 0:
+        return white
+    t = np.asarray(times, dtype=np.float64)
+    phi = np.exp(-np.diff(t) / prior.corr_time_s)
+    q = np.sqrt(np.maximum(1.0 - phi * phi, 0.0))
+    xi = rng.standard_normal((draws, F, 6))
+    s = np.empty_like(xi)
+    s[:, 0] = xi[:, 0]
+    for k in range(1, F):  # a recursion over frames, vectorised over draws and axes
+        s[:, k] = phi[k - 1] * s[:, k - 1] + q[k - 1] * xi[:, k]
+    return rho * s + np.sqrt(1.0 - rho * rho) * white

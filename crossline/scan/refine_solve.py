@@ -9,13 +9,14 @@ which re-exports these names.
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Any
 
 import numpy as np
 
 from crossline.report.fitting import robust_sigma
 from crossline.scan.refine_crossings import Crossings
-from crossline.scan.refine_prior import ArmPrior, _prior_sparse, prior_covariance
+from crossline.scan.refine_prior import ArmPrior, _prior_sparse, prior_covariance, prior_draws
 
 __all__ = ["solve_errors"]
 
@@ -33,6 +34,8 @@ def solve_errors(
     reject: float = 5.0,
     max_iter: int = 6,
     dense: bool | None = None,
+    draws: int = 0,
+    seed: int = 0,
 ) -> tuple[np.ndarray, float, dict[str, Any]]:
     """MAP pose errors (F, 6) = (ω, t) per frame from the crossings, and the A-minus-B offset β.
 
@@ -41,6 +44,11 @@ def solve_errors(
     at each iteration; residuals beyond ``huber`` scaled sigmas get Huber weights, beyond
     ``reject`` none. ``dense`` (default: up to ``DENSE_MAX_FRAMES`` frames) solves the
     normal equations by dense Cholesky, otherwise sparse LU on the banded augmented form.
+
+    ``draws`` > 0 also gives ``info["posterior"]`` (draws, F, 6): the errors left after the
+    solve, drawn from its posterior (perturb-and-MAP: the prior and the crossings' noise drawn,
+    each draw one more solve with the factorised normal equations), in mm and rad like the
+    estimate; a frame that no crossing sees is drawn from the prior given the seen ones.
     """
     import scipy.linalg as sla
     import scipy.sparse as sp
@@ -51,7 +59,11 @@ def solve_errors(
     sig = prior.sigmas()
     info: dict[str, Any] = {"crossings": K}
     if K == 0:
-        return np.zeros((F, 6)), 0.0, {**info, "iterations": 0, "used": 0, "rejected": 0}
+        out = {**info, "iterations": 0, "used": 0, "rejected": 0}
+        if draws > 0:  # nothing seen: the posterior is the prior
+            out["posterior"] = (prior_draws(times, prior, F, draws, np.random.default_rng(seed))
+                                * sig).astype(np.float32)
+        return np.zeros((F, 6)), 0.0, out
     dense = F <= DENSE_MAX_FRAMES if dense is None else dense
     if dense:
         # only frames that some crossing sees are unknowns: the prior of the others is
@@ -68,10 +80,12 @@ def solve_errors(
         nu = 6 * len(obs)
         P = np.zeros((nu + 1, nu + 1))
         P[:nu, :nu] = np.kron(lam, np.eye(6))  # frame-major: unknown f * 6 + axis
+        L = None
     else:
         col = np.arange(F)
         L, nu = _prior_sparse(times, prior, F)
         P = sp.block_diag([(L.T @ L), sp.csr_matrix((1, 1))]).tocsc()
+        lam = cov = obs = seen = None
     beta_info = 1e-6  # the A-minus-B offset is nearly free (a 1000-sigma prior)
     # Jacobian of the gap: n·(ω_f × (x − o_f) + t_f) − n·(ω_g × (x − o_g) + t_g); on
     # same-frame crossings the two cancel and only beta is seen
@@ -123,6 +137,20 @@ def solve_errors(
     else:
         a = z[: 6 * F].reshape(F, 6)
     e = a * sig
+    if draws > 0:
+        wi = w / (scale * s0) ** 2
+        if dense:
+            H = (J.T.multiply(wi[None, :]).tocsr() @ J).toarray() + P
+            H[nu, nu] += beta_info
+            solve = partial(sla.cho_solve, sla.cho_factor(H, check_finite=False),
+                            check_finite=False)
+        else:
+            H = (J.T.multiply(wi[None, :]).tocsr() @ J + P).tolil()
+            H[nu, nu] += beta_info
+            solve = splu(H.tocsc(), permc_spec="MMD_AT_PLUS_A").solve
+        post = _posterior(J, wi, solve, dense, lam, cov, obs, seen, L, nu, beta_info, F, draws,
+                          np.random.default_rng(seed))
+        info["posterior"] = post * sig.astype(np.float32)
     res_mm = cr.gap - J @ z
     used = w > 0
     info.update(
@@ -133,3 +161,46 @@ def solve_errors(
         gap_rms_after_mm=float(np.sqrt(np.mean(res_mm[used] ** 2))),
     )
     return e, float(z[nu]), info
+
+
+POSTERIOR_CHUNK = 16  # draws solved at once: a long scan's right-hand sides stay small
+
+
+def _posterior(J, wi, solve, dense, lam, cov, obs, seen, L, nu, beta_info, F, draws, rng
+               ) -> np.ndarray:
+    """Scaled posterior draws (draws, F, 6), float32, of the errors about the MAP estimate.
+
+    Perturb-and-MAP: z = H^-1 (J^T W^1/2 xi + P^1/2 eta) has covariance H^-1 (J^T W J + P) H^-1
+    = H^-1, the posterior's, for H = J^T W J + P the normal equations of the solve.
+    """
+    K = J.shape[0]
+    JtWh = J.T.multiply(np.sqrt(wi)[None, :]).tocsr()
+    out = np.zeros((draws, F, 6), np.float32)
+    Lc = np.linalg.cholesky(cov[np.ix_(obs, obs)]) if dense else None
+    for d0 in range(0, draws, POSTERIOR_CHUNK):
+        n = min(POSTERIOR_CHUNK, draws - d0)
+        G = np.asarray(JtWh @ rng.standard_normal((K, n)))
+        if dense:
+            n_o = len(obs)
+            # a prior draw a ~ N(0, C_oo) per axis gives the information's square root as P a
+            A = lam @ (Lc @ rng.standard_normal((n_o, 6 * n)))
+            G[:nu] += A.reshape(n_o, n, 6).transpose(0, 2, 1).reshape(nu, n)
+        else:
+            G[:nu] += np.asarray(L.T @ rng.standard_normal((L.shape[0], n)))
+        G[nu] += np.sqrt(beta_info) * rng.standard_normal(n)
+        Z = np.asarray(solve(G))[:nu]
+        if dense:
+            out[d0:d0 + n, obs] = Z.reshape(len(obs), 6, n).transpose(2, 0, 1)
+        else:
+            out[d0:d0 + n] = Z[: 6 * F].reshape(F, 6, n).transpose(2, 0, 1)
+    un = np.flatnonzero(~seen) if dense else ()
+    if len(un):
+        # the unseen frames given the seen ones: mean C_uo C_oo^-1 a_o, covariance its Schur
+        # complement C_uu - C_uo C_oo^-1 C_ou (per axis: the axes share the correlation)
+        C_uo = cov[np.ix_(un, obs)]
+        S = cov[np.ix_(un, un)] - C_uo @ lam @ C_uo.T
+        w_s, V = np.linalg.eigh(0.5 * (S + S.T))
+        root = V * np.sqrt(np.maximum(w_s, 0.0))
+        mean = np.einsum("uo,doa->dua", C_uo @ lam, out[:, obs])
+        out[:, un] = mean + np.einsum("uk,dka->dua", root, rng.standard_normal((draws, len(un), 6)))
+    return out

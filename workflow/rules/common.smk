@@ -184,6 +184,7 @@ def report_inputs(wildcards):
         "labels": [f"data/interim/{c}/points/{s}.json" for s in scans],
         "clouds": [f"data/processed/{c}/{s}.ply" for s in scans],
         "stats": [f"data/processed/{c}/{s}.fuse.json" for s in scans],
+        "arm": [f"data/processed/{c}/{s}.arm.npz" for s in scans],
     }
 
 

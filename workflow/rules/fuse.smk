@@ -10,6 +10,7 @@ rule fuse_points:
     output:
         cloud="data/processed/{capture}/{scan}.ply",
         stats="data/processed/{capture}/{scan}.fuse.json",
+        arm="data/processed/{capture}/{scan}.arm.npz",
     params:
         neighbours=config["fuse"]["neighbours"],
         std_ratio=config["fuse"]["std_ratio"],
@@ -24,6 +25,7 @@ rule fuse_points:
         crossing_half_mm=config["fuse"]["crossing_half_mm"],
         crossing_min_angle_deg=config["fuse"]["crossing_min_angle_deg"],
         crossing_max_width_ratio=config["fuse"]["crossing_max_width_ratio"],
+        arm_draws=config["fuse"]["arm_draws"],
     log:
         "logs/{capture}/fuse_points/{scan}.log",
     benchmark:
@@ -44,4 +46,5 @@ rule fuse_points:
         "--crossing-half-mm {params.crossing_half_mm} "
         "--crossing-min-angle-deg {params.crossing_min_angle_deg} "
         "--crossing-max-width-ratio {params.crossing_max_width_ratio} "
+        "--arm-draws {params.arm_draws} --arm-draws-out {output.arm} "
         "--threads {threads} > {log} 2>&1"
