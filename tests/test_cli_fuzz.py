@@ -415,6 +415,20 @@ def corruptions(env: Env, command: str):
                      st.lists(_anywhere(env, command), max_size=1)).map(lambda t: t[0] + t[1])
 
 
+
+def _csv_breaks(tables: list, cell: st.SearchStrategy) -> tuple:
+    """Strategies breaking a cell, a row or a column of one of ``tables`` (CSV paths)."""
+    return (
+        st.tuples(st.just("csv_cell"), st.sampled_from(tables), st.integers(0, 30), st.integers(0, 9), cell),
+        st.tuples(st.just("csv_row"), st.sampled_from(tables),
+                  st.sampled_from(["delete", "duplicate", "swap", "blank", "junk", "cut", "header_only",
+                                   "empty", "no_header", "crlf", "bom", "latin1"]),
+                  st.integers(0, 30), st.integers(0, 30)),
+        st.tuples(st.just("csv_col"), st.sampled_from(tables),
+                  st.sampled_from(["drop", "rename", "extra", "reorder", "duplicate", "upper", "spaces"]),
+                  st.integers(0, 9), st.integers(0, 9)),
+    )
+
 def _anywhere(env: Env, command: str):
     """One corruption anywhere in the capture (rig.yaml, the CSV tables, images, files missing
     or extra, a path out)."""
@@ -423,14 +437,7 @@ def _anywhere(env: Env, command: str):
         st.tuples(st.just("rig_key"), st.sampled_from(rig_paths),
                   st.just("delete") | value.map(lambda v: ("set", v))),
         st.tuples(st.just("rig_bytes"), st.integers(0, 1200), flips, st.binary(max_size=24)),
-        st.tuples(st.just("csv_cell"), st.sampled_from(TABLES), st.integers(0, 30), st.integers(0, 9), cell),
-        st.tuples(st.just("csv_row"), st.sampled_from(TABLES),
-                  st.sampled_from(["delete", "duplicate", "swap", "blank", "junk", "cut", "header_only",
-                                   "empty", "no_header", "crlf", "bom", "latin1"]),
-                  st.integers(0, 30), st.integers(0, 30)),
-        st.tuples(st.just("csv_col"), st.sampled_from(TABLES),
-                  st.sampled_from(["drop", "rename", "extra", "reorder", "duplicate", "upper", "spaces"]),
-                  st.integers(0, 9), st.integers(0, 9)),
+        *_csv_breaks(TABLES, cell),
         _img_bytes(env.images), _img_kind(env.images),
         st.tuples(st.just("missing"), st.sampled_from(env.files + env.dirs)),
         _extra(env.dirs),
@@ -507,14 +514,7 @@ def product_corruptions(env: Env, command: str):
     csv = st.one_of(
         st.tuples(st.just("csv_valid"), st.sampled_from(tables), st.integers(0, 30),
                   st.sampled_from(CSV_VALID + FRAMES_VALID)),
-        st.tuples(st.just("csv_cell"), st.sampled_from(tables), st.integers(0, 30), st.integers(0, 9), cell),
-        st.tuples(st.just("csv_row"), st.sampled_from(tables),
-                  st.sampled_from(["delete", "duplicate", "swap", "blank", "junk", "cut", "header_only",
-                                   "empty", "no_header", "crlf", "bom", "latin1"]),
-                  st.integers(0, 30), st.integers(0, 30)),
-        st.tuples(st.just("csv_col"), st.sampled_from(tables),
-                  st.sampled_from(["drop", "rename", "extra", "reorder", "duplicate", "upper", "spaces"]),
-                  st.integers(0, 9), st.integers(0, 9)),
+        *_csv_breaks(tables, cell),
     )
     deep = csv
     if command == "report":
