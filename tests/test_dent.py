@@ -51,7 +51,8 @@ def dented(tmp_path_factory):
          "--lasers", str(cal / "lasers.json"), "--handeye", str(cal / "handeye.json"), "--out", str(pts)],
         ["fuse", str(pts), "--out", str(root / "processed" / "part.ply"), "--stats",
          str(root / "processed" / "part.fuse.json"), "--refine-poses", "true",
-         "--frames", str(cap / "scans" / "part" / "frames.csv")],
+         "--frames", str(cap / "scans" / "part" / "frames.csv"), "--arm-draws-out",
+         str(root / "processed" / "part.arm.npz")],
         ["report", str(cap), "--interim", str(root / "interim"), "--processed", str(root / "processed"),
          "--pdf", str(root / "accuracy.pdf"), "--metrics", str(root / "metrics.json"),
          "--deviation-dir", str(root / "deviation")],
@@ -59,7 +60,8 @@ def dented(tmp_path_factory):
     for argv in steps:
         assert main(argv) == 0, f"stage failed: crossline {' '.join(argv)}"
     truth = json.loads((cap / "truth.json").read_text())["scans"]["part"]
-    return json.loads((root / "metrics.json").read_text())["scans"]["part"], truth, root
+    m = json.loads((root / "metrics.json").read_text())
+    return m["scans"]["part"] | {"_summary": m["summary"]}, truth, root
 
 
 def test_the_dent_is_in_the_part_and_the_truth_mesh_not_in_the_drawing(dented):
@@ -90,3 +92,21 @@ def test_the_map_finds_the_dent_where_and_how_deep(dented):
 
     dev = o3d.t.io.read_point_cloud(str(root / "deviation" / "part.ply")).point.deviation.numpy().ravel()
     assert len(dev) == nc["n"] and np.isclose(dev.min(), nc["min_mm"])
+
+
+def test_the_comparison_has_its_uncertainty(dented):
+    """The freeform's deviation figures carry a Monte Carlo U (the true calibration has no
+    covariance: the arm's draws and the frames' bootstrap), and the summary's row of the share
+    within the band gets it and the ISO 14253-1 decision."""
+    s, _, _ = dented
+    figs = s["uncertainty"]["figures"]
+    assert set(figs) == {"deviation_mean_mm", "deviation_rms_mm", "share_within_tolerance"}
+    nc = s["nominal_comparison"]
+    for key, value in (("deviation_mean_mm", nc["mean_mm"]), ("deviation_rms_mm", nc["rms_mm"]),
+                       ("share_within_tolerance", nc["share_within_tolerance"])):
+        f = figs[key]
+        assert f["value"] == pytest.approx(value, abs=1e-9), key  # the report's own figure
+        assert 0 < f["U"] < 0.1 and abs(f["mc_mean"] - f["value"]) < f["U"], (key, f)
+        assert f["budget"]["arm"]["u"] > 0 and f["budget"]["repeatability"]["u"] > 0, key
+    row = next(r for r in s["_summary"] if r["id"] == "nominal_within_share")
+    assert row["U"] == figs["share_within_tolerance"]["U"] and row["decision"]

@@ -401,3 +401,44 @@ def test_a_symmetric_patch_is_flagged_ambiguous() -> None:
     # 0.027 mm)
     d = signed_deviation(_apply(al["T_nominal_cloud"], _apply(T, cap)), V, F)
     assert np.abs(d).max() < 0.03
+
+
+def test_freeform_figures_follow_a_move_and_ignore_a_rigid_one() -> None:
+    """The freeform's Monte Carlo figures (crossline.report.uncertainty.freeform_figures): a
+    rigid motion of the whole cloud is undone by the linearised re-alignment (no deviation
+    changes), a local bump of points along the surface is seen as the exact signed distance
+    sees it, and the deviation's gradient is the surface normal on the surface."""
+    from crossline.report.nominal import signed_deviation
+    from crossline.report.uncertainty import freeform_figures
+
+    rng = np.random.default_rng(3)
+    V, F = _part_mesh()
+    p, n = _sample(V, F, 6000, rng)
+    up = p[:, 2] > 0  # the half a scan sees
+    p, n = p[up], n[up]
+    p = p + 0.002 * rng.standard_normal(len(p))[:, None] * n  # off the surface along its normal
+    dev, grad = signed_deviation(p, V, F, directions=True)
+    keep = np.ones(len(p), bool)
+    # the gradient is the outward normal of the face the point lies over (unit, same side)
+    assert np.median(np.einsum("ni,ni->n", grad, n)) > 0.999
+    assert np.allclose(np.linalg.norm(grad, axis=1), 1.0)
+    T = np.eye(4)  # the cloud already in the nominal's frame
+    fig = freeform_figures(p, T, dev, grad, keep, 0.005)
+    w = np.ones(len(p))
+    v0 = fig(p, w)
+    assert v0["deviation_mean_mm"] == pytest.approx(dev.mean(), abs=1e-12)
+    # a rigid motion of 20 µm and 0.2 mrad: its deviations are all undone by the re-alignment
+    R = o3d.geometry.get_rotation_matrix_from_xyz((2e-4, -1e-4, 1.5e-4))
+    moved = (p - p.mean(0)) @ R.T + p.mean(0) + [0.02, -0.01, 0.015]
+    v1 = fig(moved, w)
+    for k in v0:
+        assert v1[k] == pytest.approx(v0[k], abs=2e-6), k
+    # a bump of 10 µm along the normal on a patch: the linearised deviation is the exact one
+    # (after the same re-alignment, which the bump moves a little)
+    patch = np.linalg.norm(p[:, :2] - p[np.argmax(p[:, 2]), :2], axis=1) < 8.0
+    bumped = p + (0.01 * patch)[:, None] * grad
+    exact = signed_deviation(bumped, V, F)
+    v2 = fig(bumped, w)
+    assert v2["deviation_mean_mm"] - v0["deviation_mean_mm"] < 0.01 * patch.mean()
+    assert np.mean(np.abs(exact - dev)[patch]) == pytest.approx(0.01, rel=0.05)
+    assert v2["deviation_rms_mm"] > v0["deviation_rms_mm"] + 0.001

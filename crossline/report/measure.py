@@ -73,7 +73,7 @@ def _nominal_comparison(P: np.ndarray, mesh: Path, tol: dict, met: dict,
             "it scanned): scan more of the part, or give a datum")
     T = np.asarray(al["T_nominal_cloud"], dtype=np.float64)
     Q = P @ T[:3, :3].T + T[:3, 3]
-    dev = nm.signed_deviation(Q, V, F)
+    dev, grad = nm.signed_deviation(Q, V, F, directions=True)
     keep = np.isfinite(dev)
     support = nm.support_plane(V, F)
     n_support = 0
@@ -96,8 +96,9 @@ def _nominal_comparison(P: np.ndarray, mesh: Path, tol: dict, met: dict,
         **summ,
     }
     shown = keep & (np.abs(dev) <= float(met["freeform_max_distance_mm"]))
+    # "mc": what the uncertainty's figures need (uncertainty.freeform_figures), popped there
     return out, {"points": Q[shown], "dev": dev[shown], "regions": summ.get("regions") or [],
-                 "band": band}
+                 "band": band, "mc": {"T": T, "dev": dev, "grad": grad, "keep": shown}}
 
 
 def _alignment_error(T_nominal_cloud: np.ndarray, T_base_nominal: np.ndarray,
@@ -305,6 +306,10 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
                 except (CrosslineError, ValueError) as exc:
                     out["nominal_error"] = str(exc)
                     log.warning("scan %s: no comparison with its nominal: %s", sd.name, exc)
+                else:
+                    mc = sd.plots["nominal"].pop("mc")
+                    figures = partial(uc.freeform_figures, P, mc["T"], mc["dev"], mc["grad"],
+                                      mc["keep"], float(tol["nominal_band_mm"]))
                 nc = out.get("nominal_comparison")
                 if nc and tscan and "T_base_nominal" in tscan:
                     out.setdefault("truth", {})["nominal_alignment"] = _alignment_error(

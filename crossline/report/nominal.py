@@ -124,8 +124,9 @@ def support_plane(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarr
 
 
 def signed_deviation(
-    points_nominal_frame: np.ndarray, vertices: np.ndarray, triangles: np.ndarray
-) -> np.ndarray:
+    points_nominal_frame: np.ndarray, vertices: np.ndarray, triangles: np.ndarray,
+    directions: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Signed distance (N,) in mm of points (N, 3) to the nominal mesh, positive outside (excess).
 
     Closed meshes (every edge shared by two triangles) take the sign from the parity of ray
@@ -133,11 +134,22 @@ def signed_deviation(
     ``compute_signed_distance`` does; meshes that are not closed take it from the side of
     the closest triangle, i.e. positive where its counter-clockwise normal points. The
     distance is Open3D's closest point, recomputed in float64 on that triangle. Points that
-    are not finite get NaN.
+    are not finite get NaN. With ``directions``, also the gradient (N, 3) of the signed
+    distance at each point: the unit vector from its closest point towards it, signed so that
+    moving along it increases the deviation (the triangle's normal where the point lies on the
+    surface), which is how the deviation follows a small move of the point.
     """
     p = np.asarray(points_nominal_frame, dtype=np.float64).reshape(-1, 3)
     out = np.full(len(p), np.nan)
+    grad = np.full((len(p), 3), np.nan)
     ok = np.isfinite(p).all(1)
     if ok.any():
-        out[ok], _, _ = _Surface(vertices, triangles).signed(p[ok])
-    return out
+        d, q, n = _Surface(vertices, triangles).signed(p[ok])
+        out[ok] = d
+        if directions:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                g = (p[ok] - q) / d[:, None]
+            on = np.abs(d) < 1e-9
+            g[on] = n[on]
+            grad[ok] = g
+    return (out, grad) if directions else out

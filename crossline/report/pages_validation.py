@@ -269,7 +269,10 @@ UNCERTAINTY_FIGURES = {"mean_mm": "gauge height (mean)", "flatness_mm": "flatnes
                        "form_error_mm": "form error (all)", "form_error_d95_mm": "form error (D95)",
                        "form_error_vdi_mm": "form error (VDI/VDE 2634-2, 0.3 % discarded)",
                        "form_error_p95_mm": "form error (2.5–97.5 %)",
-                       "length_mm": "ball bar: centre distance (SD)"}
+                       "length_mm": "ball bar: centre distance (SD)",
+                       "deviation_mean_mm": "mean deviation from nominal",
+                       "deviation_rms_mm": "RMS deviation from nominal",
+                       "share_within_tolerance": "share within the nominal's band"}
 BUDGET = {"camera": "camera", "laser_planes": "planes", "handeye": "hand-eye", "arm": "arm",
           "repeatability": "frames"}
 
@@ -297,7 +300,7 @@ def page_uncertainty(m: dict[str, Any]) -> Figure | None:
     cells, colours = [], []
     for name, unc in scans.items():
         for key, f in unc["figures"].items():
-            share = key == "share_within_band"  # a fraction: in %, the lengths in µm
+            share = key.startswith("share_within")  # a fraction: in %, the lengths in µm
             scale = 100 if share else 1e3
             lo, hi = (x - f["value"] for x in f["interval_95"])
             cells.append([name, UNCERTAINTY_FIGURES.get(key, key),

@@ -38,7 +38,7 @@ ROW_FIGURES = {"gauge_mean_error_mm": "mean_mm", "plane_within_share": "share_wi
                "plane_flatness_95_mm": "flatness_95_mm", "sphere_size_error_mm": "diameter_mm",
                "sphere_form_error_d95_mm": "form_error_d95_mm",
                "sphere_form_error_vdi_mm": "form_error_vdi_mm", "plane_flatness_mm": "flatness_mm",
-               "ball_bar_sd_mm": "length_mm"}
+               "ball_bar_sd_mm": "length_mm", "nominal_within_share": "share_within_tolerance"}
 
 
 def _with_uncertainty(row: dict, unc: dict | None, form_key: str) -> None:

@@ -53,6 +53,7 @@ __all__ = [
     "ball_bar_figures",
     "calibration_model",
     "draw_calibration",
+    "freeform_figures",
     "gauge_figures",
     "monte_carlo",
     "plane_figures",
@@ -333,6 +334,42 @@ def ball_bar_figures(b: Any, subset: np.ndarray | None = None) -> Figures:
     def figures(P: np.ndarray, w: np.ndarray) -> dict[str, float]:
         c1, c2 = (_sphere_from(P[i], w[i], x0)[:3] for i, x0 in zip(inls, x0s, strict=True))
         return {"length_mm": float(np.linalg.norm(c1 - c2))}
+
+    return figures
+
+
+def freeform_figures(P0: np.ndarray, T_nominal_cloud: np.ndarray, dev: np.ndarray,
+                     grad: np.ndarray, keep: np.ndarray, tolerance_mm: float,
+                     subset: np.ndarray | None = None) -> Figures:
+    """A freeform's deviation from its nominal shape: mean, RMS and share within ±tolerance.
+
+    ``P0`` (N, 3) the report's points (base frame), ``T_nominal_cloud`` its alignment, ``dev``
+    and ``grad`` (N,), (N, 3) each point's signed deviation and its gradient in the nominal's
+    frame (:func:`crossline.report.nominal.signed_deviation`), ``keep`` (N,) the points
+    compared. A draw moves the points; their deviations follow to first order (grad · move),
+    and the alignment is redone to first order too (the rigid motion that best undoes the
+    deviations' change, point to plane), as the report's ICP would on the drawn cloud: a
+    calibration error that only moves the part rigidly changes no deviation.
+    """
+    pick = np.arange(len(dev)) if subset is None else np.asarray(subset)
+    k = pick[np.asarray(keep)[pick]]
+    R = np.asarray(T_nominal_cloud, dtype=np.float64)[:3, :3]
+    Q = np.asarray(P0, dtype=np.float64)[k] @ R.T + np.asarray(T_nominal_cloud)[:3, 3]
+    g, d0 = np.asarray(grad)[k], np.asarray(dev)[k]
+    A = np.hstack([np.cross(Q - Q.mean(0), g), g])  # d(dev) / d(ω, t) of the alignment
+    local = np.searchsorted(pick, k)  # the compared points among those the figures get
+    base = np.asarray(P0, dtype=np.float64)[pick]
+    tol = float(tolerance_mm)
+
+    def figures(P: np.ndarray, w: np.ndarray) -> dict[str, float]:
+        wk = w[local]
+        dd = np.einsum("ni,ni->n", g, (P[local] - base[local]) @ R.T)
+        Aw = A * wk[:, None]
+        x = np.linalg.lstsq(Aw.T @ A, -(Aw.T @ dd), rcond=None)[0]
+        d = d0 + dd + A @ x
+        return {"deviation_mean_mm": float(np.average(d, weights=wk)),
+                "deviation_rms_mm": float(np.sqrt(np.average(d * d, weights=wk))),
+                "share_within_tolerance": float(np.average(np.abs(d) <= tol, weights=wk))}
 
     return figures
 
