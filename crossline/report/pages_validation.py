@@ -267,12 +267,11 @@ UNCERTAINTY_FIGURES = {"mean_mm": "gauge height (mean)", "flatness_mm": "flatnes
                        "flatness_95_mm": "flatness (2.5–97.5 %)", "rms_mm": "RMS to the plane",
                        "share_within_band": "share within the band", "diameter_mm": "diameter",
                        "form_error_mm": "form error (all)", "form_error_d95_mm": "form error (D95)",
-                       "form_error_vdi_mm": "form error (VDI/VDE 2634-2, 0.3 % discarded)",
+                       "form_error_vdi_mm": "form (VDI/VDE 2634-2)",
                        "form_error_p95_mm": "form error (2.5–97.5 %)",
-                       "length_mm": "ball bar: centre distance (SD)",
-                       "deviation_mean_mm": "mean deviation from nominal",
-                       "deviation_rms_mm": "RMS deviation from nominal",
-                       "share_within_tolerance": "share within the nominal's band"}
+                       "length_mm": "ball bar distance (SD)",
+                       "deviation_mean_mm": "mean deviation", "deviation_rms_mm": "RMS deviation",
+                       "share_within_tolerance": "share within band"}
 BUDGET = {"camera": "camera", "laser_planes": "planes", "handeye": "hand-eye", "arm": "arm",
           "repeatability": "frames"}
 
@@ -293,8 +292,9 @@ def page_uncertainty(m: dict[str, Any]) -> Figure | None:
            "precision) and draws the scan's frames again with replacement (frames: stripe "
            "noise, speckle and the arm's pose noise as this scan realised them); the figure is "
            "measured again with the report's definition and "
-           "segmentation. U = 2 u of all together; the 95 % interval of the draws, from the value; "
-           "u: the standard uncertainty of each contributor alone. Lengths in µm, shares in %.",
+           "segmentation. U = 2 u of all together; the 95 % interval of the draws, less the value; "
+           "camera … frames: the standard uncertainty u of each contributor alone. Lengths in µm, "
+           "shares in %; form (VDI/VDE 2634-2): the range after 0.3 % of the points are discarded.",
            size=8)
     p.gap(0.08)
     cells, colours = [], []
@@ -311,10 +311,11 @@ def page_uncertainty(m: dict[str, Any]) -> Figure | None:
                           BUDGET.get(f["dominant"], f["dominant"])])
             colours.append([None] * 11)
     if cells:
-        p.table(["Scan", "Figure", "Value", "U", "95 % interval − value",
-                 *[f"u {v}" for v in BUDGET.values()], "Dominant"], cells,
-                [LEFT, LEFT + 0.07, LEFT + 0.23, LEFT + 0.32, LEFT + 0.39, LEFT + 0.52, LEFT + 0.58,
-                 LEFT + 0.64, LEFT + 0.70, LEFT + 0.76, LEFT + 0.82], size=6.8,
+        p.table(["Scan", "Figure", "Value", "U", "95 % interval",
+                 *BUDGET.values(), "Dominant"], cells,
+                # left edges; a right-aligned column ends where the next begins
+                [LEFT, LEFT + 0.06, LEFT + 0.21, LEFT + 0.29, LEFT + 0.34, LEFT + 0.46, LEFT + 0.52,
+                 LEFT + 0.58, LEFT + 0.655, LEFT + 0.71, LEFT + 0.77], size=6.8,
                 aligns=["left", "left", "right", "right", "right", "right", "right", "right",
                         "right", "right", "left"])
     for name, why in errors.items():
