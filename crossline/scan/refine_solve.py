@@ -163,7 +163,8 @@ def solve_errors(
     return e, float(z[nu]), info
 
 
-POSTERIOR_CHUNK = 16  # draws solved at once: a long scan's right-hand sides stay small
+POSTERIOR_CHUNK = 16  # draws solved at once at most
+POSTERIOR_CHUNK_VALUES = 10_000_000  # and no more random numbers per chunk than this (80 MB)
 
 
 def _posterior(J, wi, solve, dense, lam, cov, obs, seen, L, nu, beta_info, F, draws, rng
@@ -177,8 +178,10 @@ def _posterior(J, wi, solve, dense, lam, cov, obs, seen, L, nu, beta_info, F, dr
     JtWh = J.T.multiply(np.sqrt(wi)[None, :]).tocsr()
     out = np.zeros((draws, F, 6), np.float32)
     Lc = np.linalg.cholesky(cov[np.ix_(obs, obs)]) if dense else None
-    for d0 in range(0, draws, POSTERIOR_CHUNK):
-        n = min(POSTERIOR_CHUNK, draws - d0)
+    # a long scan has millions of crossings: its right-hand sides are drawn a few at a time
+    chunk = max(1, min(POSTERIOR_CHUNK, POSTERIOR_CHUNK_VALUES // max(K, nu + 1, 1)))
+    for d0 in range(0, draws, chunk):
+        n = min(chunk, draws - d0)
         G = np.asarray(JtWh @ rng.standard_normal((K, n)))
         if dense:
             n_o = len(obs)
