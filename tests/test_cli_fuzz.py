@@ -69,7 +69,7 @@ file; run_calibrate_handeye now names calibration/handeye/poses.csv (and calibra
 when too few views show the board).
 fuse on a frames.csv with two rows' frame numbers swapped (times no longer increasing with the
 numbers) exited 3 ("ValueError: `times` must give one increasing time per frame of `frames`"
-from the pose refinement): fuse_inputs._read_frames now names the file and the two frames.
+from the pose refinement): fuse.inputs._read_frames now names the file and the two frames.
 The report read truth.json, calibration/handeye/poses.csv and frames.csv (or a scan's folder)
 through links out of the capture, and read frames.csv leniently (pandas): a cell holding a
 comma gave it other laser states and "internal error: ValueError: number sections must be
@@ -80,7 +80,7 @@ now says the surface is flat and asks for a datum (the report goes on without th
 comparison). Fuse on a frames.csv without one of the points' frames (its last frame
 renumbered) said "pose refinement: frame(s) [23] of the points are not in the scan's frames
 table", naming no file; run_fuse now checks the points' frames against the table first
-(fuse_inputs._frames_in_table) and names frames.csv.
+(fuse.inputs._frames_in_table) and names frames.csv.
 """
 
 from __future__ import annotations

@@ -52,7 +52,7 @@ def test_outliers_by_slabs_are_open3ds():
 def test_normals_by_slabs_equal_the_whole_clouds(monkeypatch):
     p = _wavy_cloud(30_000)[:30_000]
     whole, deg = estimate_normals(p, 0.8)
-    import crossline.fuse as fz
+    import crossline.fuse.cloud as fz
     monkeypatch.setattr(fz, "slabs", lambda pts, halo: slabs(pts, halo, target=4_000))
     cut, deg2 = fz.estimate_normals(p, 0.8)
     assert np.array_equal(deg, deg2)

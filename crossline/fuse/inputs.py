@@ -3,8 +3,9 @@
 ``read_points_columns`` reads the columns fuse needs row group by row group into arrays
 (with each frame's camera centre from the camera-frame columns, :class:`FrameMoments`);
 ``_read_frames`` reads the frame times and flange positions of a scan's frames.csv, and
-``_same_scan`` refuses a frames table of another scan. Split from ``crossline.fuse``
-(issue 21.3), which re-exports these names.
+``_same_scan`` refuses a frames table of another scan. Split from the fuse stage's module
+(issue 21.3; now :mod:`crossline.fuse.cloud`); the package ``crossline.fuse`` re-exports these
+names.
 """
 
 from __future__ import annotations
@@ -14,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from crossline.camera_centres import FrameMoments
 from crossline.errors import StageError
+from crossline.fuse.camera_centres import FrameMoments
 
 __all__ = ["read_points_columns"]
 

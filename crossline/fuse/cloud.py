@@ -7,7 +7,7 @@ therefore averages the points of each laser separately, never mixing the two.
 Normals are oriented towards the camera that saw the point. The camera's position in the
 base frame is recovered per frame from the points themselves: each point is known in the
 camera frame and in the base frame, and one rigid motion (Kabsch) maps the first to the
-second, its translation being the camera centre (:mod:`crossline.camera_centres`). Frames
+second, its translation being the camera centre (:mod:`crossline.fuse.camera_centres`). Frames
 whose points are collinear (a single stripe on a plane) borrow the centre of the nearest frame
 that has one.
 
@@ -26,12 +26,13 @@ float32, ``laser`` as uchar 1 = A / 2 = B, ``frame`` as int32); Open3D and other
 read it as an ordinary point cloud with normals (:mod:`crossline.io.ply`, which writes it so
 that its bytes depend only on the points).
 
-The code is split by idea (issue 21.3): ``fuse_normals`` (one slab's normals, their
-orientation), ``fuse_refine`` (the pose refinement step and its stats), ``fuse_mesh`` (the
-optional mesh), ``fuse_inputs`` (the points parquet's columns, the scan's frames table). This
-module keeps the cloud (``FusedCloud``), ``estimate_normals`` and the normals towards the
-camera (which cut the cloud into slabs), the voxel grid, ``fuse_cloud`` and ``run_fuse``, and
-re-exports the names its importers use.
+The code is split by idea (issue 21.3): ``crossline.fuse.normals`` (one slab's normals, their
+orientation), ``crossline.fuse.refine`` (the pose refinement step and its stats),
+``crossline.fuse.mesh`` (the optional mesh), ``crossline.fuse.inputs`` (the points parquet's
+columns, the scan's frames table). This module keeps the cloud (``FusedCloud``),
+``estimate_normals`` and the normals towards the camera (which cut the cloud into slabs), the
+voxel grid, ``fuse_cloud`` and ``run_fuse``; the package (``crossline.fuse``) re-exports the
+names its importers use.
 """
 
 from __future__ import annotations
@@ -44,13 +45,13 @@ from typing import Any
 
 import numpy as np
 
-from crossline.camera_centres import FrameMoments as FrameMoments
-from crossline.camera_centres import camera_centres
 from crossline.errors import StageError
-from crossline.fuse_inputs import _frames_in_table, _read_frames, _same_scan, read_points_columns
-from crossline.fuse_mesh import make_mesh
-from crossline.fuse_normals import _slab_normals, orient_normals
-from crossline.fuse_refine import _prior_draws, _refine
+from crossline.fuse.camera_centres import FrameMoments as FrameMoments
+from crossline.fuse.camera_centres import camera_centres
+from crossline.fuse.inputs import _frames_in_table, _read_frames, _same_scan, read_points_columns
+from crossline.fuse.mesh import make_mesh
+from crossline.fuse.normals import _slab_normals, orient_normals
+from crossline.fuse.refine import _prior_draws, _refine
 from crossline.io.arm_draws import ArmDraws, write_arm_draws
 from crossline.io.atomic import write_json
 from crossline.io.ply import read_ply, write_ply, write_stl
@@ -73,7 +74,7 @@ __all__ = [
     "write_stl",
 ]
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("crossline.fuse")
 
 LASER_CODES = {"A": 1, "B": 2}
 

@@ -4,7 +4,7 @@
 that adds its arguments), in the order the subcommands are defined; ``crossline.cli`` builds
 the parser from it. The argparse types (``_bool``, ``_checked`` and the checked numbers made
 with it, ``_board_spec``), the check of parquet inputs and the ``--threads`` option are shared
-by the subcommands of ``cli_capture``, ``cli_calibrate``, ``cli_scan`` and ``cli_products``.
+by the subcommands of ``crossline.cli.capture``, ``.calibrate``, ``.scan`` and ``.products``.
 Split from ``crossline.cli`` (issue 21.3), which re-exports ``COMMANDS``.
 """
 

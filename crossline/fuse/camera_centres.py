@@ -1,10 +1,11 @@
 """Camera centres in the base frame from points known in both the camera and the base frame.
 
-Split from :mod:`crossline.fuse` (issue 21.3). Each point of a scan is known in the camera
-frame and in the base frame, and one rigid motion (Kabsch) maps the first to the second, its
-translation being the camera centre; frames whose points are collinear borrow the centre of
-the nearest frame that has one. :class:`FrameMoments` gathers the same per-frame sums chunk
-by chunk, so that a long scan need not hold its camera-frame points.
+Split from the fuse stage's module (issue 21.3; now :mod:`crossline.fuse.cloud`). Each point
+of a scan is known in the camera frame and in the base frame, and one rigid motion (Kabsch)
+maps the first to the second, its translation being the camera centre; frames whose points
+are collinear borrow the centre of the nearest frame that has one. :class:`FrameMoments`
+gathers the same per-frame sums chunk by chunk, so that a long scan need not hold its
+camera-frame points.
 """
 
 from __future__ import annotations

@@ -3,7 +3,8 @@
 ``_refine`` joins the points to the scan's frames table (times, flange positions), runs
 :func:`crossline.scan.refine.refine_frames`, moves each frame's camera centre with its
 points and returns the refinement's stats for the stats JSON (``refine``). It logs under
-the fuse stage's logger (``crossline.fuse``). Split from ``crossline.fuse`` (issue 21.3).
+the fuse stage's logger (``crossline.fuse``). Split from the fuse stage's module (issue 21.3;
+now :mod:`crossline.fuse.cloud`).
 """
 
 from __future__ import annotations

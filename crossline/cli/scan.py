@@ -1,6 +1,6 @@
 """The ``crossline`` subcommands of a scan: ``extract-stripes``, ``gather-stripes``, ``triangulate``.
 
-Each registers itself in ``crossline.cli_args.COMMANDS`` when this module is imported
+Each registers itself in ``crossline.cli.args.COMMANDS`` when this module is imported
 (``crossline.cli`` imports it). Split from ``crossline.cli`` (issue 21.3).
 """
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from crossline.cli_args import _auto_or_count, _auto_or_fraction, _bool, _parquet_inputs, _threads, command
+from crossline.cli.args import _auto_or_count, _auto_or_fraction, _bool, _parquet_inputs, _threads, command
 
 # ----------------------------------------------------------------------------- scan stages
 

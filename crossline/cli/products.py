@@ -1,7 +1,7 @@
 """The ``crossline`` subcommands that make the products: ``fuse``, ``export-cloud``, ``report``,
 ``certificate`` (the fused cloud, its E57, the accuracy report, the calibration certificate).
 
-Each registers itself in ``crossline.cli_args.COMMANDS`` when this module is imported
+Each registers itself in ``crossline.cli.args.COMMANDS`` when this module is imported
 (``crossline.cli`` imports it). Split from ``crossline.cli`` (issue 21.3).
 """
 
@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from crossline.cli_args import _auto_or_positive, _bool, _positive, _threads, _unit_interval, command
+from crossline.cli.args import _auto_or_positive, _bool, _positive, _threads, _unit_interval, command
 
 # ----------------------------------------------------------------------------- fusion, report
 

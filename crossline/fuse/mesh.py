@@ -1,8 +1,9 @@
 """A surface mesh of the fused cloud (Open3D): Poisson or ball pivoting.
 
 ``make_mesh``: Poisson, trimmed where nothing was measured, or ball pivoting at radii of a
-few point spacings; the fuse stage writes it as STL when asked (``mesh``). Split from
-``crossline.fuse`` (issue 21.3), which re-exports this name.
+few point spacings; the fuse stage writes it as STL when asked (``mesh``). Split from the fuse
+stage's module (issue 21.3; now :mod:`crossline.fuse.cloud`); the package ``crossline.fuse``
+re-exports this name.
 """
 
 from __future__ import annotations

@@ -4,11 +4,12 @@ Each subcommand is what a Snakemake rule runs; it can be run by hand just the sa
 Errors in the input (a broken capture, a missing artefact) end with a message that names
 the file and exit status 2; nothing half-written is left behind.
 
-The code is split by idea (issue 21.3): ``cli_args`` (the registry of subcommands, the
-argument types they share), ``cli_capture`` (simulate, check), ``cli_calibrate`` (the three
-calibrations), ``cli_scan`` (extract-stripes, gather-stripes, triangulate), ``cli_products``
-(fuse, export-cloud, report, certificate). This module keeps the parser and the entry point
-(``build_parser``, ``main``) and re-exports ``COMMANDS``.
+The code is split by idea (issue 21.3) into this package's modules: ``args`` (the registry
+of subcommands, the argument types they share), ``capture`` (simulate, check), ``calibrate``
+(the three calibrations), ``scan`` (extract-stripes, gather-stripes, triangulate),
+``products`` (fuse, export-cloud, report, certificate). This module keeps the parser and the
+entry point (``build_parser``, ``main``) and re-exports ``COMMANDS``; ``__main__`` runs
+``main`` for ``python -m crossline.cli``.
 """
 
 from __future__ import annotations
@@ -19,15 +20,15 @@ import os
 import sys
 
 from crossline import __version__
-from crossline.cli_args import COMMANDS
+from crossline.cli.args import COMMANDS
 
 # The subcommands register themselves in COMMANDS as their modules are imported: the order
 # of these imports is the order of `crossline --help` (the workflow's), so keep it.
 # isort: off
-from crossline import cli_capture  # noqa: F401
-from crossline import cli_calibrate  # noqa: F401
-from crossline import cli_scan  # noqa: F401
-from crossline import cli_products  # noqa: F401
+from crossline.cli import capture  # noqa: F401
+from crossline.cli import calibrate  # noqa: F401
+from crossline.cli import scan  # noqa: F401
+from crossline.cli import products  # noqa: F401
 # isort: on
 
 log = logging.getLogger("crossline")
@@ -102,7 +103,3 @@ def main(argv: list[str] | None = None) -> int:
               f"crossline, not in the input: please report it with this command line; -v shows "
               f"where)", file=sys.stderr)
         return 3
-
-
-if __name__ == "__main__":
-    sys.exit(main())

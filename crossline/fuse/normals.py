@@ -4,9 +4,9 @@
 the radius (at most ``NORMAL_MAX_NN``), with the view direction where the neighbours lie
 along a line or there are none; ``orient_normals`` flips normals to face their viewpoints
 (or the dominant side). :func:`crossline.fuse.estimate_normals` and the fuse stage's
-normals towards the camera stay in :mod:`crossline.fuse`, which cuts the cloud into slabs
-(:mod:`crossline.tiles`). Split from ``crossline.fuse`` (issue 21.3), which re-exports these
-names.
+normals towards the camera stay in :mod:`crossline.fuse.cloud`, which cuts the cloud into
+slabs (:mod:`crossline.tiles`). Split from that module (issue 21.3); the package
+``crossline.fuse`` re-exports these names.
 """
 
 from __future__ import annotations
