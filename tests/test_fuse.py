@@ -288,7 +288,9 @@ def test_run_fuse_refinement_needs_what_it_names(posed_plate, tmp_path):
     df = pd.read_parquet(pq)
     bad = tmp_path / "frames.csv"
     pd.read_csv(posed_plate / "frames.csv").iloc[:-5].to_csv(bad, index=False)
-    with pytest.raises(StageError, match="not in the scan's frames table"):
+    # the table is named, with the frames it lacks
+    with pytest.raises(StageError, match=r"frames\.csv: frame\(s\) \[55, 56, 57, 58, 59\] of plate"
+                       r"\.parquet \(5 in all\) are not rows of this frames table"):
         run_fuse(pq, tmp_path / "x.ply", refine_poses=True, frames=bad)
     nocam = tmp_path / "nocam.parquet"
     write_parquet(nocam, df.drop(columns=["x_cam", "y_cam", "z_cam"]))
