@@ -11,35 +11,8 @@ their importers use, so ``from crossline.fuse import ...`` is unchanged.
 
 from __future__ import annotations
 
+from crossline.fuse import cloud
 from crossline.fuse.camera_centres import FrameMoments as FrameMoments
-from crossline.fuse.cloud import (
-    LASER_CODES,
-    FusedCloud,
-    camera_centres,
-    estimate_normals,
-    fuse_cloud,
-    make_mesh,
-    orient_normals,
-    read_ply,
-    read_points_columns,
-    run_fuse,
-    voxel_down_sample,
-    write_ply,
-    write_stl,
-)
+from crossline.fuse.cloud import *  # noqa: F403 (the stage's names, as crossline.fuse had them)
 
-__all__ = [
-    "LASER_CODES",
-    "FusedCloud",
-    "camera_centres",
-    "estimate_normals",
-    "fuse_cloud",
-    "make_mesh",
-    "orient_normals",
-    "read_ply",
-    "read_points_columns",
-    "run_fuse",
-    "voxel_down_sample",
-    "write_ply",
-    "write_stl",
-]
+__all__ = cloud.__all__
