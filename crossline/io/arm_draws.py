@@ -8,8 +8,8 @@ its frame's drawn error (its ``arm`` contributor: the errors that the frames of 
 which resampling the frames does not see).
 
 File: ``data/processed/<capture>/<scan>.arm.npz`` (NumPy ``savez``): ``frames`` (F,) int64,
-``origins`` (F, 3) mm, ``sigmas`` (6,) the draws' spread per axis (rad, mm), ``scaled``
-(D, F, 6) float16, each draw in units of that spread (3 significant digits are more than an
+``origins`` (F, 3) mm, ``sigmas`` (6,) the draws' RMS per axis (rad, mm), ``scaled``
+(D, F, 6) float16, each draw in units of that RMS (3 significant digits are more than an
 uncertainty needs, and halve the file of a long scan), ``kind`` "posterior" or "prior".
 """
 
@@ -46,7 +46,9 @@ class ArmDraws:
 
 def write_arm_draws(path: str | Path, a: ArmDraws) -> None:
     """Write the draws atomically (a complete file or none)."""
-    sig = np.maximum(a.draws.reshape(-1, 6).std(0) if a.draws.size else np.ones(6), 1e-30)
+    d = np.asarray(a.draws, dtype=np.float64).reshape(-1, 6)
+    sig = np.sqrt(np.mean(d * d, axis=0)) if d.size else np.ones(6)
+    sig = np.where(sig > 0, sig, 1.0)  # an axis of zeros stays zeros
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         np.savez(f, frames=np.asarray(a.frames, np.int64), origins=np.asarray(a.origins, np.float64),
                  sigmas=sig, scaled=(a.draws / sig).astype(np.float16), kind=np.array(a.kind))
