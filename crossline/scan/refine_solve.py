@@ -164,7 +164,7 @@ def solve_errors(
 
 
 POSTERIOR_CHUNK = 16  # draws solved at once at most
-POSTERIOR_CHUNK_VALUES = 10_000_000  # and no more random numbers per chunk than this (80 MB)
+POSTERIOR_CHUNK_VALUES = 2_000_000  # and no more random numbers per chunk than this (16 MB)
 
 
 def _posterior(J, wi, solve, dense, lam, cov, obs, seen, L, nu, beta_info, F, draws, rng
@@ -175,14 +175,14 @@ def _posterior(J, wi, solve, dense, lam, cov, obs, seen, L, nu, beta_info, F, dr
     = H^-1, the posterior's, for H = J^T W J + P the normal equations of the solve.
     """
     K = J.shape[0]
-    JtWh = J.T.multiply(np.sqrt(wi)[None, :]).tocsr()
+    JT, sw = J.T, np.sqrt(wi)[:, None]  # J^T W^1/2 xi as J^T (W^1/2 xi): no copy of J
     out = np.zeros((draws, F, 6), np.float32)
     Lc = np.linalg.cholesky(cov[np.ix_(obs, obs)]) if dense else None
     # a long scan has millions of crossings: its right-hand sides are drawn a few at a time
     chunk = max(1, min(POSTERIOR_CHUNK, POSTERIOR_CHUNK_VALUES // max(K, nu + 1, 1)))
     for d0 in range(0, draws, chunk):
         n = min(chunk, draws - d0)
-        G = np.asarray(JtWh @ rng.standard_normal((K, n)))
+        G = np.asarray(JT @ (sw * rng.standard_normal((K, n))))
         if dense:
             n_o = len(obs)
             # a prior draw a ~ N(0, C_oo) per axis gives the information's square root as P a
