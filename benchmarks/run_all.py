@@ -45,6 +45,8 @@ AREAS: dict[str, tuple[str, str]] = {
     "report": ("Report", "python benchmarks/bench_report.py"),
     "uncertainty": ("Coverage of the reports' U over seeded captures",
                     "python benchmarks/bench_uncertainty.py"),
+    "posterior": ("Pose refinement's posterior against the error it leaves",
+                  "python benchmarks/bench_posterior.py"),
     "jpeg": ("JPEG frames against PNG: camera, plane angle and point sigma",
              "python benchmarks/bench_jpeg.py"),
     "ball_bar": ("Ball bar: sphere-spacing error SD against truth", "python benchmarks/bench_ball_bar.py"),

@@ -52,7 +52,6 @@ def solve_errors(
     """
     import scipy.linalg as sla
     import scipy.sparse as sp
-    from scipy.sparse.linalg import splu
 
     F = len(origins)
     K = len(cr.gap)
@@ -110,16 +109,7 @@ def solve_errors(
     iterations = 0
     for iterations in range(1, max_iter + 1):  # noqa: B007 (the count is reported)
         wi = w / (scale * s0) ** 2
-        JtW = J.T.multiply(wi[None, :]).tocsr()
-        g = JtW @ cr.gap
-        if dense:
-            H = (JtW @ J).toarray() + P
-            H[nu, nu] += beta_info
-            z_new = sla.cho_solve(sla.cho_factor(H, check_finite=False), g, check_finite=False)
-        else:
-            H = (JtW @ J + P).tolil()
-            H[nu, nu] += beta_info
-            z_new = splu(H.tocsc(), permc_spec="MMD_AT_PLUS_A").solve(g)
+        z_new = _normal_equations(J, wi, P, nu, beta_info, dense)(J.T @ (wi * cr.gap))
         res = (cr.gap - J @ z_new) / s0
         new_scale = max(1.4826 * float(np.median(np.abs(res[w > 0]))), floor)
         u = np.abs(res) / new_scale
@@ -139,15 +129,7 @@ def solve_errors(
     e = a * sig
     if draws > 0:
         wi = w / (scale * s0) ** 2
-        if dense:
-            H = (J.T.multiply(wi[None, :]).tocsr() @ J).toarray() + P
-            H[nu, nu] += beta_info
-            solve = partial(sla.cho_solve, sla.cho_factor(H, check_finite=False),
-                            check_finite=False)
-        else:
-            H = (J.T.multiply(wi[None, :]).tocsr() @ J + P).tolil()
-            H[nu, nu] += beta_info
-            solve = splu(H.tocsc(), permc_spec="MMD_AT_PLUS_A").solve
+        solve = _normal_equations(J, wi, P, nu, beta_info, dense)
         post = _posterior(J, wi, solve, dense, lam, cov, obs, seen, L, nu, beta_info, F, draws,
                           np.random.default_rng(seed))
         info["posterior"] = post * sig.astype(np.float32)
@@ -161,6 +143,22 @@ def solve_errors(
         gap_rms_after_mm=float(np.sqrt(np.mean(res_mm[used] ** 2))),
     )
     return e, float(z[nu]), info
+
+
+def _normal_equations(J, wi, P, nu: int, beta_info: float, dense: bool):
+    """The solve of the weighted normal equations H = J^T W J + P (+ the offset's prior),
+    factorised once: dense Cholesky, or sparse LU on the banded augmented form."""
+    import scipy.linalg as sla
+    from scipy.sparse.linalg import splu
+
+    JtWJ = J.T.multiply(wi[None, :]).tocsr() @ J
+    if dense:
+        H = JtWJ.toarray() + P
+        H[nu, nu] += beta_info
+        return partial(sla.cho_solve, sla.cho_factor(H, check_finite=False), check_finite=False)
+    H = (JtWJ + P).tolil()
+    H[nu, nu] += beta_info
+    return splu(H.tocsc(), permc_spec="MMD_AT_PLUS_A").solve
 
 
 POSTERIOR_CHUNK = 16  # draws solved at once at most
