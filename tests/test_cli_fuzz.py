@@ -59,8 +59,8 @@ draws on 2000 points: enough to read frames.csv again), on interim/processed fol
 two scans' points and fused clouds: plate (a plane, whose uncertainty reads frames.csv with
 the capture's reader) and part (a freeform, which reads and aligns the nominal mesh); the
 capture's gauge and ball have no points (their frames.csv are read, not measured), and
-truth.json is read and scored. Not covered: broken products (points, clouds, calibrations),
-a one-line or ball-bar scan's figures, the certificate.
+truth.json is read and scored. Broken products (points, clouds, calibrations, ...) are
+test_products_fuzz.py's. Not covered: a one-line or ball-bar scan's figures, the certificate.
 The capture reader alone is fuzzed much harder (800 cases) in test_capture_fuzz.py.
 
 Found: calibrate-handeye on arm poses that do not rotate (every row of poses.csv the same)
@@ -100,7 +100,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from hypothesis import HealthCheck, Phase, example, given, note, seed, settings
+from hypothesis import HealthCheck, Phase, currently_in_test_context, example, given, note, seed, settings
 from hypothesis import strategies as st
 
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("cli_fuzz")]
@@ -133,12 +133,17 @@ def _snapshot(root: Path) -> dict[str, tuple[int, int, int]]:
 
 @pytest.fixture(scope="module")
 def env(quick_capture: Path, tmp_path_factory) -> Env:
+    return build_env(quick_capture, tmp_path_factory.mktemp("cli-fuzz"))
+
+
+def build_env(quick_capture: Path, work: Path) -> Env:
+    """The capture fuzzed (a copy of the quick capture in ``work``), the rig's true
+    calibrations and the plate's stripes (in ``work/cal``)."""
     from crossline.camera import Camera
     from crossline.cli import main
     from crossline.io.atomic import write_json
     from crossline.laser import LaserPlanes
 
-    work = tmp_path_factory.mktemp("cli-fuzz")
     base = work / "base" / "cap"
     # a real copy (cases are hard links of it: the session's cached capture is never linked)
     shutil.copytree(quick_capture, base, ignore=lambda d, names: [
@@ -199,8 +204,9 @@ def products(env: Env) -> Path:
     return env.work
 
 
-def _fuse_argv(points: Path, frames: Path, cloud: Path, stats: Path) -> list:
-    """fuse's command line as workflow/rules/fuse.smk gives it, with config.yaml's values."""
+def _fuse_argv(points: Path, frames: Path, cloud: Path, stats: Path, arm: Path | None = None) -> list:
+    """fuse's command line as workflow/rules/fuse.smk gives it, with config.yaml's values (the
+    arm's draws written to ``arm`` when given)."""
     c = yaml.safe_load((REPO / "config.yaml").read_text())["fuse"]
     opts = {k: c[k] for k in ("neighbours", "std_ratio", "voxel_mm", "normal_radius_mm", "mesh")}
     more = {k: c[k] for k in ("arm_precision_mm", "arm_precision_rad", "arm_smooth_fraction",
@@ -210,6 +216,8 @@ def _fuse_argv(points: Path, frames: Path, cloud: Path, stats: Path) -> list:
     flag += [("--mesh-out", cloud.with_suffix(".stl")), ("--refine-poses", str(c["refine_poses"]).lower()),
              ("--frames", frames)]
     flag += [(f"--{k.replace('_', '-')}", v) for k, v in more.items()]
+    if arm is not None:
+        flag += [("--arm-draws", c["arm_draws"]), ("--arm-draws-out", arm)]
     return ["fuse", points, "--out", cloud, "--stats", stats, *[x for f in flag for x in f], "--threads", 1]
 
 
@@ -289,6 +297,11 @@ def _read_artefact(command: str, art: Path) -> None:
         assert metrics["result"] in ("PASS", "FAIL", "INCOMPLETE")
         assert sorted(metrics["scans"]) == metrics["capture"]["scans"]
         assert (art.parent / "accuracy.pdf").read_bytes().startswith(b"%PDF")
+    elif command == "export-cloud":
+        from crossline.io.clouds import read_e57
+
+        cloud = read_e57(art)
+        assert len(cloud["points"]) and np.all(np.isfinite(cloud["points"]))
     else:
         table = pd.read_parquet(art)
         cols = ["u", "v"] if command == "extract-stripes" else ["x", "y", "z"]
@@ -986,8 +999,6 @@ class _Records(logging.Handler):
 def run_case(env: Env, command: str, ops: list, refusal: list[str] | None = None) -> tuple[int, str]:
     """Break a copy of the capture by ``ops``, run ``command`` on it and check the outcome.
     With ``refusal``, a single escape op whose refusal must hold each of the texts."""
-    from crossline.cli import main
-
     case = Path(tempfile.mkdtemp(prefix="case-", dir=env.work)).resolve()
     try:
         root, out = case / "cap", case / "out"
@@ -1004,34 +1015,10 @@ def run_case(env: Env, command: str, ops: list, refusal: list[str] | None = None
         note(f"corruptions: {done}")
         before = sorted(p.relative_to(root).as_posix() for p in root.rglob("*"))
         argv, art = _argv(command, root, out, env.cal)
-        err, records = io.StringIO(), _Records()
-        logging.getLogger().addHandler(records)
-        _OUTSIDE.clear()
-        _WATCH.append((root, case, env.originals))
-        try:
-            with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-                code = main(argv)
-        finally:
-            _WATCH.pop()
-            logging.getLogger().removeHandler(records)
-        err = err.getvalue()
-        log = "\n".join(records.text)
-        note(f"exit {code}: {err}")
-        assert code in (0, 2), f"exit {code} (0 or 2 expected): {err}"
-        assert "Traceback" not in err and "Traceback" not in log, err + log
-        assert not _OUTSIDE, f"opened outside the capture: {sorted(set(_OUTSIDE))}"
+        code, err, _ = run_checked(command, argv, art, out, lambda m: _names_a_file(m, root),
+                                   watch=(root, case, env.originals))
         after = sorted(p.relative_to(root).as_posix() for p in root.rglob("*"))
         assert after == before, "the command wrote into the capture"
-        left = sorted(p.name for p in out.iterdir())
-        if code == 0:
-            assert art.is_file(), f"exit 0 without {art.name}"
-            assert not [n for n in left if n.endswith(".tmp")], left
-            _read_artefact(command, art)
-        else:
-            m = re.search(rf"^crossline {command}: error: (.*)", err, re.M | re.S)
-            assert m, f"no error message: {err!r}"
-            assert _names_a_file(m.group(1), root), f"the message names no file of the capture: {err}"
-            assert not left, f"a failed run left {left}"
         if refusal is not None and done:
             assert code == 2, f"a path out of the capture was accepted: {done}"
             for text in refusal:
@@ -1040,6 +1027,48 @@ def run_case(env: Env, command: str, ops: list, refusal: list[str] | None = None
         shutil.rmtree(case, ignore_errors=True)
     assert _snapshot(env.base) == env.snapshot, "a case changed the base capture"
     return code, err
+
+
+def run_checked(command: str, argv: list[str], art: Path, out: Path, named, watch: tuple | None = None
+                ) -> tuple[int, str, str]:
+    """Run ``crossline <argv>`` in this process and check the outcome: exit 0 with ``art``
+    written and sane (:func:`_read_artefact`), or exit 2 with one ``crossline <command>: error:``
+    message for which ``named(message)`` holds and nothing left in ``out``; never another exit
+    status, a traceback (on stderr or in the log), or a temporary file left. With ``watch``
+    (capture, case folder, forbidden paths), no file is opened outside the capture. Returns the
+    exit status, stderr and the log's records."""
+    from crossline.cli import main
+
+    err, records = io.StringIO(), _Records()
+    logging.getLogger().addHandler(records)
+    _OUTSIDE.clear()
+    if watch is not None:
+        _WATCH.append(watch)
+    try:
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            code = main(argv)
+    finally:
+        if watch is not None:
+            _WATCH.pop()
+        logging.getLogger().removeHandler(records)
+    err = err.getvalue()
+    log = "\n".join(records.text)
+    if currently_in_test_context():  # a hypothesis case (test_products_fuzz.py's are not)
+        note(f"exit {code}: {err}")
+    assert code in (0, 2), f"exit {code} (0 or 2 expected): {err}"
+    assert "Traceback" not in err and "Traceback" not in log, err + log
+    assert not _OUTSIDE, f"opened outside the capture: {sorted(set(_OUTSIDE))}"
+    left = sorted(p.name for p in out.iterdir())
+    if code == 0:
+        assert art.is_file(), f"exit 0 without {art.name}"
+        assert not [n for n in left if n.endswith(".tmp")], left
+        _read_artefact(command, art)
+    else:
+        m = re.search(rf"^crossline {command}: error: (.*)", err, re.M | re.S)
+        assert m, f"no error message: {err!r}"
+        assert named(m.group(1)), f"the message names no file of the input: {err}"
+        assert not left, f"a failed run left {left}"
+    return code, err, log
 
 
 # --------------------------------------------------------------------------- the properties

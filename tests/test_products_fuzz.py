@@ -1,0 +1,326 @@
+"""The stages' products as untrusted input, through the command line (issue 23.2): what a
+user's disk or an interrupted copy can leave of a calibration JSON, a stripes or points
+parquet, a fused cloud or the arm's draws, given to the commands that read it, as the
+workflow's rules give it (workflow/rules/scan.smk, fuse.smk, report.smk, export.smk).
+test_cli_fuzz.py breaks the captures; this module breaks the products and checks the same
+contract with its runner (:func:`tests.test_cli_fuzz.run_checked`): exit 0 with the artefact
+written and sane, or exit 2 with one ``crossline <command>: error: ...`` message that names
+the broken file; never exit 3 (a bug), never a traceback, never a temporary or partial
+artefact left behind, never a change to the capture.
+
+The products are made once for the module from test_cli_fuzz.py's capture (the quick capture,
+its true calibrations, the plate's stripes): the plate's points, and its cloud, fuse
+statistics and arm draws as fuse.smk writes them. Each case breaks one or two of them in a
+copy (hard links; the broken file rewritten) and runs one command:
+
+==============================  ==========  =====================================================
+product                         command     cases
+==============================  ==========  =====================================================
+calibration/camera.json         triangulate 6: cut, no K, K with text, K NaN, fx 0, image_size of 1
+calibration/lasers.json         triangulate 6: cut, A a text, normal of 2, normal not unit, d inf,
+                                            no plane B
+calibration/handeye.json        triangulate 5: cut, 3x4, NaN, scaled (not rigid), mirrored
+stripes/<scan>.parquet          triangulate 7: cut, no column u, u as text, NaN centres, no rows,
+                                            rows out of frame order, metadata not an object
+points/<scan>.parquet           fuse        6: cut, no x, no frame, x_cam NaN, no rows, metadata
+                                            not an object
+calibrations, points, cloud,    report      6 runs, 2 faults each: dist of 4 + fuse statistics of
+arm draws, side files                       texts; no plane B + points' side file of texts; T
+                                            mirrored + cloud with NaN vertices; hand-eye method a
+                                            list + cloud's x read as float; arm draws cut + points
+                                            cut; arm draws NaN + cloud's vertex count
+<scan>.ply                      export-     2: cut, NaN vertices
+                                cloud
+==============================  ==========  =====================================================
+
+38 cases, about 13 s of one core (products made once included). The report's Monte Carlo is
+cut to 2 draws on 2000 points (test_cli_fuzz.py's ``_report_config``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.test_cli_fuzz import FUSED, _argv, _fuse_argv, _snapshot, build_env, run_checked
+
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("products_fuzz")]
+
+CALIBRATIONS = ("camera.json", "lasers.json", "handeye.json")
+
+
+class Made:
+    """The unbroken products: ``cal`` (calibrations and the plate's stripes, as
+    test_cli_fuzz.py's ``_argv`` reads them), ``interim`` and ``processed`` as the workflow
+    lays them out, beside the capture ``base``."""
+
+    def __init__(self, work: Path, base: Path, products: Path):
+        self.work, self.base, self.products = work, base, products
+        self.snapshot = _snapshot(base)
+
+
+@pytest.fixture(scope="module")
+def made(quick_capture: Path, tmp_path_factory) -> Made:
+    from crossline.cli import main
+
+    env = build_env(quick_capture, tmp_path_factory.mktemp("products-fuzz"))
+    products = env.work / "products"
+    cal, points, processed = products / "cal", products / "interim" / "points", products / "processed"
+    shutil.copytree(env.cal, cal)
+    points.mkdir(parents=True)
+    processed.mkdir()
+    (products / "interim" / "calibration").mkdir()
+    for name in CALIBRATIONS:
+        os.link(cal / name, products / "interim" / "calibration" / name)
+    scan = env.base / "scans" / FUSED
+    argv, _ = _argv("triangulate", env.base, points, cal)
+    argv[argv.index("--out") + 1] = str(points / f"{FUSED}.parquet")
+    assert main(argv) == 0
+    assert main([str(a) for a in _fuse_argv(
+        points / f"{FUSED}.parquet", scan / "frames.csv", processed / f"{FUSED}.ply",
+        processed / f"{FUSED}.fuse.json", arm=processed / f"{FUSED}.arm.npz")]) == 0
+    (processed / f"{FUSED}.stl").unlink(missing_ok=True)
+    return Made(env.work, env.base, products)
+
+
+# --------------------------------------------------------------------------- breaking a file
+
+
+def _write(p: Path, data: bytes | str) -> None:
+    """New contents under a new inode: the case's files are hard links of the products."""
+    p.unlink()
+    p.write_bytes(data.encode() if isinstance(data, str) else data)
+
+
+def cut(fraction: float) -> Callable[[Path], None]:
+    def f(p: Path) -> None:
+        data = p.read_bytes()
+        _write(p, data[: int(len(data) * fraction)])
+    return f
+
+
+def edit_json(change: Callable[[dict], object]) -> Callable[[Path], None]:
+    def f(p: Path) -> None:
+        _write(p, json.dumps(change(json.loads(p.read_text()))))
+    return f
+
+
+def edit_table(change: Callable) -> Callable[[Path], None]:
+    """A parquet rewritten by ``change(table)``, its crossline metadata kept."""
+    def f(p: Path) -> None:
+        import pyarrow.parquet as pq
+
+        meta = pq.ParquetFile(p).metadata.metadata
+        t = pq.read_table(p).replace_schema_metadata({b"crossline": meta[b"crossline"]})
+        p.unlink()
+        pq.write_table(change(t), p)
+    return f
+
+
+def column(name: str, values: Callable) -> Callable:
+    """``change`` of :func:`edit_table`: column ``name`` replaced by ``values(column as numpy)``."""
+    def change(t):
+        import pyarrow as pa
+
+        return t.set_column(t.schema.get_field_index(name), name, pa.array(values(t[name].to_numpy())))
+    return change
+
+
+def metadata(value: bytes) -> Callable:
+    return lambda t: t.replace_schema_metadata({b"crossline": value})
+
+
+def every(k: int, value: float) -> Callable:
+    def values(a: np.ndarray) -> np.ndarray:
+        a = a.astype(np.float64)
+        a[::k] = value
+        return a
+    return values
+
+
+def edit_npz(change: Callable[[dict], dict]) -> Callable[[Path], None]:
+    def f(p: Path) -> None:
+        with np.load(p) as z:
+            arrays = change(dict(z))
+        p.unlink()
+        with open(p, "wb") as fh:
+            np.savez(fh, **arrays)
+    return f
+
+
+def edit_bytes(old: bytes, new: bytes) -> Callable[[Path], None]:
+    def f(p: Path) -> None:
+        data = p.read_bytes()
+        assert old in data, old
+        _write(p, data.replace(old, new, 1))
+    return f
+
+
+def ply_nan(p: Path) -> None:
+    """Every tenth vertex of the cloud with a NaN x, every seventh an infinite normal."""
+    from crossline.io.ply import _PLY_FIELDS
+
+    data = p.read_bytes()
+    start = data.index(b"end_header\n") + len(b"end_header\n")
+    rows = np.frombuffer(data, dtype=_PLY_FIELDS, offset=start).copy()
+    rows["x"][::10] = np.nan
+    rows["nx"][::7] = np.inf
+    _write(p, data[:start] + rows.tobytes())
+
+
+def _K(d: dict, i: int, j: int, v) -> dict:
+    K = [list(r) for r in d["K"]]
+    K[i][j] = v
+    return {**d, "K": K}
+
+
+def _plane(data: dict, laser: str, **kv) -> dict:
+    return {**data, laser: {**data[laser], **kv}}
+
+
+def _T(d: dict, change: Callable[[np.ndarray], None]) -> dict:
+    T = np.array(d["T_tool_cam"])
+    change(T)
+    return {**d, "T_tool_cam": T.tolist()}
+
+
+def _scale(T: np.ndarray) -> None:
+    T[:3, :3] *= 1.1
+
+
+def _mirror(T: np.ndarray) -> None:
+    T[:3, 0] *= -1
+
+
+def _nan(T: np.ndarray) -> None:
+    T[0, 3] = np.nan
+
+
+C, L, H = (f"cal/{n}" for n in CALIBRATIONS)
+S, P = "cal/stripes.parquet", f"interim/points/{FUSED}.parquet"
+Y, A = f"processed/{FUSED}.ply", f"processed/{FUSED}.arm.npz"
+FJ, PJ = f"processed/{FUSED}.fuse.json", f"interim/points/{FUSED}.json"
+
+# (command, [(file, how it is broken), ...][, a text its refusal must hold]) by case name
+CASES: dict[str, tuple] = {
+    "camera cut": ("triangulate", [(C, cut(0.5))]),
+    "camera without K": ("triangulate", [(C, edit_json(lambda d: {k: v for k, v in d.items() if k != "K"}))]),
+    "camera K with text": ("triangulate", [(C, edit_json(lambda d: _K(d, 0, 2, "1536.0 px")))]),
+    "camera K NaN": ("triangulate", [(C, edit_json(lambda d: _K(d, 1, 1, float("nan"))))]),
+    "camera fx 0": ("triangulate", [(C, edit_json(lambda d: _K(d, 0, 0, 0.0)))], "'K'"),
+    "camera image_size of 1": ("triangulate", [(C, edit_json(lambda d: {**d, "image_size": [3072]}))],
+                               "'image_size'"),
+    "lasers cut": ("triangulate", [(L, cut(0.5))]),
+    "lasers A a text": ("triangulate", [(L, edit_json(lambda d: {**d, "A": "plane A"}))], "laser A"),
+    "lasers normal of 2": ("triangulate", [(L, edit_json(
+        lambda d: _plane(d, "A", normal=d["A"]["normal"][:2])))], "'normal'"),
+    "lasers normal not unit": ("triangulate", [(L, edit_json(
+        lambda d: _plane(d, "B", normal=[2 * x for x in d["B"]["normal"]])))], "'normal'"),
+    "lasers d inf": ("triangulate", [(L, edit_json(lambda d: _plane(d, "A", d=float("inf"))))], "'d'"),
+    "lasers without B": ("triangulate", [(L, edit_json(lambda d: {k: v for k, v in d.items() if k != "B"}))]),
+    "handeye cut": ("triangulate", [(H, cut(0.5))]),
+    "handeye T 3x4": ("triangulate", [(H, edit_json(lambda d: {**d, "T_tool_cam": d["T_tool_cam"][:3]}))]),
+    "handeye T NaN": ("triangulate", [(H, edit_json(lambda d: _T(d, _nan)))]),
+    "handeye T scaled": ("triangulate", [(H, edit_json(lambda d: _T(d, _scale)))], "'T_tool_cam'"),
+    "handeye T mirrored": ("triangulate", [(H, edit_json(lambda d: _T(d, _mirror)))], "'T_tool_cam'"),
+    "stripes cut": ("triangulate", [(S, cut(0.9))]),
+    "stripes without u": ("triangulate", [(S, edit_table(lambda t: t.drop_columns(["u"])))], "'u'"),
+    "stripes u as text": ("triangulate", [(S, edit_table(column("u", lambda a: a.astype(str))))], "'u'"),
+    "stripes NaN centres": ("triangulate", [(S, edit_table(column("v", every(50, np.nan))))], "'v'"),
+    "stripes no rows": ("triangulate", [(S, edit_table(lambda t: t.slice(0, 0)))]),
+    "stripes out of frame order": ("triangulate", [(S, edit_table(
+        lambda t: t.take(np.arange(len(t))[::-1])))], "order"),
+    "stripes metadata a list": ("triangulate", [(S, edit_table(metadata(b"[1]")))]),
+    "points cut": ("fuse", [(P, cut(0.9))]),
+    "points without x": ("fuse", [(P, edit_table(lambda t: t.drop_columns(["x"])))]),
+    "points without frame": ("fuse", [(P, edit_table(lambda t: t.drop_columns(["frame"])))], "'frame'"),
+    "points x_cam NaN": ("fuse", [(P, edit_table(column("x_cam", every(3, np.nan))))]),
+    "points no rows": ("fuse", [(P, edit_table(lambda t: t.slice(0, 0)))]),
+    "points metadata a list": ("fuse", [(P, edit_table(metadata(b"[1]")))]),
+    "report: dist of 4, fuse statistics of texts": ("report", [
+        (C, edit_json(lambda d: {**d, "dist": d["dist"][:4]})),
+        (FJ, edit_json(lambda d: {k: "?" for k in d}))]),
+    "report: no plane B, points' side file of texts": ("report", [
+        (L, edit_json(lambda d: {k: v for k, v in d.items() if k != "B"})),
+        (PJ, edit_json(lambda d: {k: "?" for k in d}))]),
+    "report: T mirrored, NaN vertices": ("report", [(H, edit_json(lambda d: _T(d, _mirror))), (Y, ply_nan)]),
+    "report: method a list, x read as float": ("report", [
+        (H, edit_json(lambda d: {**d, "method": ["refined"]})),
+        (Y, edit_bytes(b"property double x\n", b"property float x\n"))]),
+    "report: arm draws cut, points cut": ("report", [(A, cut(0.5)), (P, cut(0.5))]),
+    "report: arm draws NaN, vertex count": ("report", [
+        (A, edit_npz(lambda z: {**z, "sigmas": np.full(6, np.nan)})),
+        (Y, edit_bytes(b"element vertex ", b"element vertex 1"))]),
+    "export-cloud: cut": ("export-cloud", [(Y, cut(0.5))]),
+    "export-cloud: NaN vertices": ("export-cloud", [(Y, ply_nan)]),
+}
+
+
+# cases that fail until the fix of their bug (strict: each fix removes its entries)
+XFAIL: dict[str, str] = {
+    "camera fx 0": "camera.json: a zero focal length gives NaN points",
+    "camera image_size of 1": "camera.json: IndexError (exit 3)",
+    "lasers A a text": "lasers.json: AttributeError (exit 3)",
+    "lasers normal of 2": "lasers.json: a numpy reshape error, no key named",
+    "lasers normal not unit": "lasers.json: a normal of length 2 silently normalised",
+    "lasers d inf": "lasers.json: an infinite d gives NaN points",
+    "handeye T scaled": "handeye.json: a T_tool_cam that is not rigid is used",
+    "handeye T mirrored": "handeye.json: a mirrored T_tool_cam is used",
+    "report: dist of 4, fuse statistics of texts": "report: ValueError (exit 3)",
+    "report: no plane B, points' side file of texts": "report: KeyError (exit 3)",
+    "report: T mirrored, NaN vertices": "report: scipy's ValueError (exit 3)",
+    "report: method a list, x read as float": "report: TypeError (exit 3)",
+    "stripes without u": "stripes: KeyError (exit 3)",
+    "stripes u as text": "stripes: a column of text taken",
+    "stripes NaN centres": "stripes: NaN centres taken",
+    "stripes no rows": "stripes: the refusal names no file",
+    "stripes out of frame order": "stripes: rows out of frame order labelled wrong",
+    "stripes metadata a list": "stripes: AttributeError (exit 3)",
+    "points without frame": "points: every point taken as frame 0",
+    "points x_cam NaN": "points: SVD did not converge (exit 3)",
+    "points metadata a list": "points: AttributeError (exit 3)",
+    "report: arm draws cut, points cut": "arm draws: BadZipFile (exit 3)",
+    "report: arm draws NaN, vertex count": "arm draws: NaN sigmas taken",
+}
+
+
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(strict=True, reason=XFAIL[n]))
+                                  if n in XFAIL else n for n in CASES])
+def test_broken_product(made: Made, name: str) -> None:
+    """One or two products broken, the command that reads them run on the unbroken capture;
+    where the case gives a text, it must be refused (exit 2) with a message holding it. A
+    report that goes on without a broken product names it in its log."""
+    command, breaks, *refusal = CASES[name]
+    case = Path(tempfile.mkdtemp(prefix="case-", dir=made.work)).resolve()
+    try:
+        shutil.copytree(made.products, case, copy_function=os.link, dirs_exist_ok=True)
+        broken = []
+        for rel, how in breaks:
+            how(case / rel)
+            broken.append(case / rel)
+            if rel.startswith("cal/") and rel.endswith(".json"):  # the report reads interim's copy
+                dup = case / "interim" / "calibration" / Path(rel).name
+                dup.unlink()
+                os.link(case / rel, dup)
+                broken.append(dup)
+        out = case / "out"
+        out.mkdir()
+        if command == "export-cloud":
+            argv, art = ["export-cloud", str(case / Y), "--out", str(out / "plate.e57")], out / "plate.e57"
+        else:
+            argv, art = _argv(command, made.base, out, case / "cal")
+        code, err, log = run_checked(command, argv, art, out, lambda m: any(str(p) in m for p in broken))
+        for text in refusal:
+            assert code == 2 and text in err, f"refused with {text!r} expected: exit {code}, {err}"
+        if command == "report" and code == 0:  # it goes on without them, saying which and why
+            assert all(p.name in log for p in broken), f"a broken product not named: {log}"
+    finally:
+        shutil.rmtree(case, ignore_errors=True)
+    assert _snapshot(made.base) == made.snapshot, "a case changed the capture"
