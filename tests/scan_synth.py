@@ -81,11 +81,12 @@ def true_centres(T_btool: np.ndarray, cam: Camera, pl: LaserPlanes, laser: str) 
 
 
 def render(vs: list[np.ndarray], rng: np.random.Generator, sigma: float = 1.3, peak: float = 180.0,
-           bit_depth: int = 8) -> np.ndarray:
-    """A frame of the window with Gaussian stripes centred on rows ``vs`` (full-sensor)."""
+           bit_depth: int = 8, ambient: np.ndarray | None = None) -> np.ndarray:
+    """A frame of the window with Gaussian stripes centred on rows ``vs`` (full-sensor), on
+    the room's light ``ambient`` (counts, the window's shape) where given."""
     _x0, y0, w, h = WINDOW
     rows = np.arange(y0, y0 + h, dtype=float)[:, None]
-    img = np.full((h, w), 5.0)
+    img = np.full((h, w), 5.0) + (0.0 if ambient is None else ambient)
     for v in vs:
         slope = np.gradient(v)
         cosf = 1.0 / np.sqrt(1.0 + slope**2)
@@ -103,8 +104,9 @@ def render(vs: list[np.ndarray], rng: np.random.Generator, sigma: float = 1.3, p
 
 
 def make_capture(root: Path, n_frames: int = 24, pattern=("A", "B", "AB"), seed: int = 0,
-                 states: list[str] | None = None, bit_depth: int = 8) -> dict:
-    """Write the analytic capture under ``root``; return the truth (centres per frame, rig)."""
+                 states: list[str] | None = None, bit_depth: int = 8, ambient=None) -> dict:
+    """Write the analytic capture under ``root``; return the truth (centres per frame, rig).
+    ``ambient(i)`` gives frame i's room light (counts, the window's shape), if given."""
     rng = np.random.default_rng(seed)
     root.mkdir(parents=True, exist_ok=True)
     x0, y0, w, h = WINDOW
@@ -140,7 +142,8 @@ def make_capture(root: Path, n_frames: int = 24, pattern=("A", "B", "AB"), seed:
             vA = true_centres(T, cam, pl, "A")
             vB = true_centres(T, cam, pl, "B")
             lit = {"A": [vA], "B": [vB], "AB": [vA, vB], "off": []}[st]
-            write_png(fdir / f"{i:06d}.png", render(lit, rng, bit_depth=bit_depth))
+            amb = None if ambient is None else ambient(i)
+            write_png(fdir / f"{i:06d}.png", render(lit, rng, bit_depth=bit_depth, ambient=amb))
             q = matrix_to_quat(T[:3, :3])
             wr.writerow([i, f"{i / 80:.6f}", st, *(f"{x:.9f}" for x in T[:3, 3]),
                          *(f"{x:.12f}" for x in q)])

@@ -795,3 +795,78 @@ def test_colour_capture_stage_measures_the_red_channel_and_gathers_the_choice(tm
     a = pq.read_table(tmp_path / "g.parquet").to_pandas()
     b = pq.read_table(tmp_path / "rgb.parquet").to_pandas()
     assert len(a) == len(b) and np.array_equal(a["v"].to_numpy(), b["v"].to_numpy())
+
+
+def _printed_marks(shift: float = 0.0) -> np.ndarray:
+    """The room's light on printed marks: bright bars 3 px wide, 23 px apart, at 60 degrees,
+    as narrow as a stripe (no local background takes them out), 70 counts above the plate."""
+    from tests import scan_synth
+
+    _x0, _y0, w, h = scan_synth.WINDOW
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+    t = (xx + shift) * np.cos(np.radians(60.0)) + yy * np.sin(np.radians(60.0))
+    return 70.0 * (np.mod(t, 23.0) < 3.0)
+
+
+def _against_truth(s, truth, frames) -> tuple[int, float]:
+    """Centres of ``frames`` farther than 3 px from their true lines, and the others' RMS."""
+    far, err = 0, []
+    for f in frames:
+        g = s[s.frame == f]
+        st = truth["states"][f]
+        d = np.min([np.abs(g.v.to_numpy() - np.interp(g.u, truth["cols"], truth["v"][f][x]))
+                    for x in ("A", "B") if x in st], axis=0)
+        far += int(np.count_nonzero(d > 3.0))
+        err.append(d[d <= 3.0])
+    return far, float(np.sqrt(np.mean(np.concatenate(err) ** 2)))
+
+
+def test_off_frames_take_the_room_s_light_out_where_it_stood_still(tmp_path):
+    """A scan with off frames (A, B, AB, off) under printed marks lit by the room: the marks,
+    narrow as a stripe, are found as stripes in every laser frame (about 3500 centres each);
+    less the room's light of the off frames on either side, the frames between two off frames
+    have none and their centres' error is that of the same scan without the marks. Where the
+    marks move between off frames (3 px per frame) nothing is subtracted, and the stage gives
+    what it gives without its off frames. Chunks read the off frames of their neighbours and
+    join into the same table; an off frame that cannot be read is named."""
+    from crossline.errors import CrosslineError
+    from crossline.scan.stripes import gather_stripes, run_extract_stripes
+    from tests import scan_synth
+
+    pattern = ("A", "B", "AB", "off")
+    runs = {}
+    for name, ambient in (("clean", None), ("still", lambda i: _printed_marks()),
+                          ("moving", lambda i: _printed_marks(3.0 * i))):
+        truth = scan_synth.make_capture(tmp_path / name, n_frames=16, pattern=pattern, ambient=ambient)
+        for mode in ("ignore", "subtract"):
+            out = tmp_path / f"{name}_{mode}.parquet"
+            meta = run_extract_stripes(tmp_path / name, "plate", out, extractor="gaussian", off_frames=mode)
+            runs[name, mode] = meta, pq.read_table(out).to_pandas()
+    # frames 0-2 precede the first off frame (3): one off frame cannot show that nothing moved
+    between = [f for f in range(4, 15) if truth["states"][f] != "off"]
+    counts = runs["still", "subtract"][0]["counts"]
+    assert counts["frames_room_light_subtracted"] == len(between) == 9
+    assert counts["frames_room_light_kept"] == 3
+    far_marks, _ = _against_truth(runs["still", "ignore"][1], truth, between)
+    far, rms = _against_truth(runs["still", "subtract"][1], truth, between)
+    far_clean, rms_clean = _against_truth(runs["clean", "ignore"][1], truth, between)
+    assert far_marks > 1000 * len(between)
+    # no narrow room light, nothing subtracted and no noise added: the same table
+    assert runs["clean", "subtract"][1].equals(runs["clean", "ignore"][1])
+    assert far <= far_clean + 5
+    assert rms < 1.1 * rms_clean
+    moving = runs["moving", "subtract"]
+    assert moving[0]["counts"]["frames_room_light_subtracted"] == 0
+    assert moving[1].equals(runs["moving", "ignore"][1])
+
+    parts = [tmp_path / f"part{i}.parquet" for i in range(3)]
+    for i, part in enumerate(parts):
+        run_extract_stripes(tmp_path / "still", "plate", part, extractor="gaussian", chunk=(i, 3), threads=2)
+    gather_stripes(parts, tmp_path / "gathered.parquet")
+    assert pq.read_table(tmp_path / "gathered.parquet").to_pandas().equals(runs["still", "subtract"][1])
+
+    (tmp_path / "still" / "scans" / "plate" / "frames" / "000007.png").write_bytes(b"\x89PNG\r\n\x1a\n")
+    with pytest.raises(CrosslineError, match="000007.png"):
+        run_extract_stripes(tmp_path / "still", "plate", tmp_path / "bad.parquet", extractor="gaussian",
+                            threads=2)
+    assert not (tmp_path / "bad.parquet").exists()

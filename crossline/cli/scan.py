@@ -49,6 +49,9 @@ def _extract_stripes(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fit-across", type=_bool, default=True,
                    help="gaussian: refit stripes steeper than 0.3 px per column across the stripe "
                         "(true, default) or keep the column fit alone (false)")
+    p.add_argument("--off-frames", choices=("subtract", "ignore"), default="subtract",
+                   help="a scan with off frames: subtract the room's light they show from the laser "
+                        "frames between two of them where it did not move (default), or ignore them")
     p.add_argument("--decoder", choices=("auto", "fast", "opencv"), default="auto",
                    help="PNG decoder: fast (libdeflate + numba), opencv, or auto (fast if installed)")
     p.add_argument("--chunk", default="0/1", help="i/n: process the i-th of n slices (0-based)")
@@ -66,7 +69,7 @@ def _extract_stripes(p: argparse.ArgumentParser) -> None:
             min_width=a.min_width, max_width=a.max_width, sigma=a.sigma, chunk=(i, n),
             threads=a.threads, pad=a.pad, fit_pad=a.fit_pad,
             relative_noise=a.relative_noise, fit_across=a.fit_across,
-            decoder=a.decoder, min_peak=a.min_peak,
+            decoder=a.decoder, min_peak=a.min_peak, off_frames=a.off_frames,
         )
         return 0
 

@@ -331,6 +331,7 @@ def map_frames(
     decoder: str = "auto",
     transposed: bool = False,
     channel: str | None = None,
+    on_read_error: Callable[[int, BaseException], None] | None = None,
 ) -> Iterator[T]:
     """Yield ``fn(i, image)`` for the i-th frame file, in order, reading each file once.
 
@@ -340,12 +341,20 @@ def map_frames(
     Reading, decoding and ``fn`` run together in ``threads`` worker threads (decoding and
     OpenCV/numpy kernels release the GIL); at most ``in_flight`` frames (default 2 per
     thread) are being worked on or waiting, so memory does not grow with the scan length.
+    ``on_read_error(i, exc)`` is told of a file that cannot be read before its error is
+    raised (an ``fn`` of a later frame may be waiting for that one).
     """
     threads = max(1, int(threads))
     in_flight = max(1, in_flight or 2 * threads)
 
     def work(i: int, p: str | Path) -> T:
-        return fn(i, read_frame(p, shape, decoder, transposed, channel))
+        try:
+            img = read_frame(p, shape, decoder, transposed, channel)
+        except BaseException as exc:
+            if on_read_error is not None:
+                on_read_error(i, exc)
+            raise
+        return fn(i, img)
 
     paths = list(paths)
     if threads == 1:

@@ -85,6 +85,7 @@ import pyarrow.parquet as pq
 from crossline.errors import CrosslineError, StageError
 from crossline.io.atomic import atomic_path
 from crossline.scan.frames import map_frames
+from crossline.scan.off_frames import OFF_MODES, OffFrames, read_order
 from crossline.scan.stripe_channel import _data_range, scan_channel
 from crossline.scan.stripe_frame import EXTRACTORS, _rows_of, any_angle, extract, with_local_background
 from crossline.scan.stripe_gaussian import gaussian
@@ -260,6 +261,7 @@ def run_extract_stripes(
     fit_across: bool = True,
     decoder: str = "auto",
     min_peak: float = 0.17,
+    off_frames: str = "subtract",
 ) -> dict[str, Any]:
     """Extract the stripe centres of one scan's frames (or one chunk of them) to parquet.
 
@@ -267,12 +269,16 @@ def run_extract_stripes(
     stored in full-sensor pixels with the frame's laser state. The parquet's schema
     metadata (key ``crossline``) holds the parameters and counts. Returns that metadata.
     ``extractor`` defaults to the paper's grey centre; the workflow's config uses the
-    Gaussian fit.
+    Gaussian fit. Where the scan has ``off`` frames, ``off_frames="subtract"`` takes the
+    room's light they show out of the laser frames between them
+    (:mod:`crossline.scan.off_frames`); the off frames' own centres are the raw frame's.
     """
     from crossline.io.capture import open_capture
 
     if extractor not in EXTRACTORS:
         raise StageError(f"unknown extractor {extractor!r}; expected one of {EXTRACTORS}")
+    if off_frames not in OFF_MODES:
+        raise StageError(f"unknown off_frames {off_frames!r}; expected one of {OFF_MODES}")
     if not 0 < threshold < 1:
         raise StageError(f"threshold is a fraction of the stripe's peak above the background, "
                          f"in (0, 1), got {threshold}")
@@ -282,9 +288,9 @@ def run_extract_stripes(
     sc = cap.scans[scan]
     win = cap.rig.scan_window
     lo, hi = _chunk_bounds(len(sc.frames), chunk)
-    frames = sc.frames[lo:hi]
-    states = sc.lasers[lo:hi]
-    params = {"threshold": threshold, "min_width": min_width, "max_width": max_width, "min_peak": min_peak}
+    all_states = np.asarray(sc.lasers).astype(str)
+    params = {"threshold": threshold, "min_width": min_width, "max_width": max_width, "min_peak": min_peak,
+              "off_frames": off_frames}
     if extractor == "steger":
         params["sigma"] = sigma
     elif extractor == "gaussian":
@@ -300,10 +306,17 @@ def run_extract_stripes(
     }
     counts = {"frames": 0, "frames_without_stripe": 0, "frames_local_background": 0, "centres": 0,
               **{f"flag_{name}": 0 for name in FLAG_NAMES.values()}}
+    room = None
+    if off_frames == "subtract" and (all_states == "off").any():
+        room = OffFrames(all_states, lo, hi, [str(f) for f in sc.frames], max_width)
+        order = read_order(lo, hi, all_states)
+        counts["frames_room_light_subtracted"] = counts["frames_room_light_kept"] = 0
+    else:
+        order = [(i, True) for i in range(lo, hi)]
     t0 = time.perf_counter()
     noise: list[tuple[int, float, float]] = []
     levels: list[tuple[int, float, float, float, float]] = []
-    paths = [sc.frame_path(f) for f in frames]
+    paths = [sc.frame_path(sc.frames[i]) for i, _ in order]
     sensor = cap.rig.sensor
     try:
         scan_paths = [sc.frame_path(f) for f in sc.frames]
@@ -318,23 +331,50 @@ def run_extract_stripes(
     if chosen["source"].startswith("chosen"):
         log.info("scan %s: colour frames measured on the %s channel (%s)", scan, channel, chosen["source"])
     log.info("scan %s: data range 0..%d (%d bits, %s)", scan, rng_["max"], rng_["bits"], rng_["source"])
-    fit = _frame_work(extractor, params, float(rng_["max"]))
+    data_max = float(rng_["max"])
+    fit = _frame_work(extractor, params, data_max)
     transposed = True
 
-    def work(j: int, img: np.ndarray) -> tuple[dict[str, Any], pa.Table, dict[str, int]]:
+    def work(j: int, img: np.ndarray) -> tuple[int, dict[str, Any], pa.Table, dict[str, int]] | None:
         # the table and the flag counts are made in the worker thread too: the loop below,
         # which the workers wait on, only writes
+        i, extract_it = order[j]
+        subtracted = None  # None: no off frames used; else whether the room's light was taken out
+        if room is not None:
+            if all_states[i] == "off":
+                room.put(i, img)
+            else:
+                img, subtracted = room.subtract(i, img, data_max)
+        if not extract_it:
+            return None
         c = fit(j, img)
         flags = {name: int(np.count_nonzero(c["flags"] & bit)) for bit, name in FLAG_NAMES.items()}
-        return c, _table(int(frames[j]), str(states[j]), c, win.x, win.y), flags
+        return i, c, _table(int(sc.frames[i]), str(all_states[i]), c, win.x, win.y), flags, subtracted
+
+    def unreadable(j: int, _exc: BaseException) -> None:
+        if room is not None:
+            room.failed(order[j][0])
+
+    def in_frame_order(results: Iterator) -> Iterator:
+        # an off frame is read before the laser frames ahead of it: put them back in order
+        held, nxt = {}, lo
+        for r in results:
+            if r is None:
+                continue
+            held[r[0]] = r
+            while nxt in held:
+                yield held.pop(nxt)
+                nxt += 1
 
     with atomic_path(out) as tmp:
         writer = _GroupedWriter(tmp)
         it = map_frames(paths, work, shape=(win.height, win.width), threads=threads, decoder=decoder,
-                        transposed=transposed, channel=channel)
+                        transposed=transposed, channel=channel, on_read_error=unreadable)
         try:
-            for j, (c, table, flags) in enumerate(it):
+            for i, c, table, flags, subtracted in in_frame_order(it):
                 counts["frames"] += 1
+                if subtracted is not None:
+                    counts["frames_room_light_subtracted" if subtracted else "frames_room_light_kept"] += 1
                 nc = c["u"].size
                 counts["frames_without_stripe"] += nc == 0
                 counts["frames_local_background"] += bool(c["_info"]["local_background"])
@@ -343,9 +383,9 @@ def run_extract_stripes(
                     counts[f"flag_{name}"] += k
                 info = c["_info"]
                 lv = info["levels"]
-                levels.append((int(frames[j]), lv["background"], lv["noise"], lv["peak"], lv["level"]))
+                levels.append((int(sc.frames[i]), lv["background"], lv["noise"], lv["peak"], lv["level"]))
                 if "fit" in info and nc:
-                    noise.append((int(frames[j]), info["fit"]["noise_dn"], info["fit"]["relative_noise"]))
+                    noise.append((int(sc.frames[i]), info["fit"]["noise_dn"], info["fit"]["relative_noise"]))
                 writer.add(table)
         except CrosslineError as exc:
             raise StageError(f"scan {scan}: {exc}") from exc
@@ -370,6 +410,11 @@ def run_extract_stripes(
              "surfaces above the threshold and were extracted less their local background", scan,
              counts["frames"], counts["centres"], counts["frames"] / max(dt, 1e-9), extractor, threads,
              counts["frames_local_background"])
+    if room is not None:
+        log.info("scan %s: the room's light of its off frames subtracted from %d laser frames, not "
+                 "from %d (it moved between their two off frames, or they have one only); %d off "
+                 "frames of neighbouring chunks read for it", scan, counts["frames_room_light_subtracted"],
+                 counts["frames_room_light_kept"], sum(not e for _, e in order))
     return meta
 
 

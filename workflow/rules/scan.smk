@@ -19,6 +19,7 @@ rule extract_stripes:
         relative_noise=config["stripes"]["relative_noise"],
         fit_across=config["stripes"]["fit_across"],
         min_peak=config["stripes"]["min_peak"],
+        off_frames=config["stripes"]["off_frames"],
     log:
         "logs/{capture}/extract_stripes/{scan}.part{i}-of-{n}.log",
     benchmark:
@@ -33,7 +34,7 @@ rule extract_stripes:
         "--out {output.part} --extractor {params.extractor} --threshold {params.threshold} "
         "--min-width {params.min_width} --max-width {params.max_width} --sigma {params.sigma} "
         "--pad {params.pad} --fit-pad {params.fit_pad} --relative-noise {params.relative_noise} "
-        "--fit-across {params.fit_across} --min-peak {params.min_peak} "
+        "--fit-across {params.fit_across} --min-peak {params.min_peak} --off-frames {params.off_frames} "
         "--chunk {wildcards.i}/{wildcards.n} --threads {threads} > {log} 2>&1"
 
 
