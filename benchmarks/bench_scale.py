@@ -92,7 +92,8 @@ def stage_commands(capture: Path, interim: Path, processed: Path, chunks: int,
                 s["extractor"], "--threshold", str(s["threshold"]), "--min-width", str(s["min_width"]),
                 "--max-width", str(s["max_width"]), "--sigma", str(s["sigma"]), "--pad", str(s["pad"]),
                 "--fit-pad", str(s["fit_pad"]), "--relative-noise", str(s["relative_noise"]),
-                "--fit-across", str(s["fit_across"]).lower(), "--chunk", f"{i}/{chunks}",
+                "--fit-across", str(s["fit_across"]).lower(), "--min-peak", str(s["min_peak"]),
+                "--off-frames", s["off_frames"], "--chunk", f"{i}/{chunks}",
                 "--threads", "2"] for i in range(chunks)]
     stripes = interim / "stripes" / f"{scan}.parquet"
     points = interim / "points" / f"{scan}.parquet"

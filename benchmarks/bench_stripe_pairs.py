@@ -79,7 +79,7 @@ def rendered(name: str, args: list[str], scans: list[str]) -> dict[str, dict[str
                        capture_output=True)
     cfg = yaml.safe_load((REPO / "config.yaml").read_text())["stripes"]
     kw = {k: cfg[k] for k in ("threshold", "min_width", "max_width", "sigma", "pad", "fit_pad",
-                              "fit_across", "min_peak")}
+                              "fit_across", "min_peak", "off_frames")}
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
         for scan in scans:
