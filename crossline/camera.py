@@ -17,6 +17,8 @@ import numpy as np
 
 from crossline.errors import CrosslineError
 from crossline.io.atomic import write_json
+from crossline.io.contract import _short
+from crossline.io.values import finite_array
 from crossline.jit import jit
 
 __all__ = ["CAMERA_PARAMETERS", "Camera", "distort_normalized", "undistort_normalized"]
@@ -181,12 +183,31 @@ class Camera:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Camera:
-        """Camera from a dict with keys ``K``, ``dist``, ``image_size`` (others kept as extras)."""
+        """Camera from a dict with keys ``K``, ``dist``, ``image_size`` (others kept as extras).
+
+        KeyError for a missing key; ValueError naming the key and what was expected where a
+        value is no usable camera model (non-finite or not numbers, K not of the form
+        [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, image_size not two positive
+        whole numbers).
+        """
+        if not isinstance(data, dict):
+            raise ValueError(f"expected a JSON object with keys K, dist, image_size, "
+                             f"got {type(data).__name__}")
         missing = [k for k in ("K", "dist", "image_size") if k not in data]
         if missing:
             raise KeyError(f"camera model lacks key(s) {missing}")
+        form = "the 3x3 camera matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] in px, fx and fy > 0"
+        K = finite_array(data, "K", (3, 3), form)
+        if not (K[0, 0] > 0 and K[1, 1] > 0) or K[1, 0] != 0 or np.any(K[2] != (0.0, 0.0, 1.0)):
+            raise ValueError(f"'K' = {K.tolist()}: expected {form}")
+        dist = finite_array(data, "dist", (5,), "5 distortion coefficients [k1, k2, p1, p2, k3]")
+        size = data["image_size"]
+        if not (isinstance(size, list | tuple) and len(size) == 2 and all(
+                isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size)):
+            raise ValueError(f"'image_size' = {_short(size)}: expected [width, height], two positive "
+                             f"whole numbers of pixels")
         extra = {k: v for k, v in data.items() if k not in ("K", "dist", "image_size")}
-        return cls(np.array(data["K"]), np.array(data["dist"]), tuple(data["image_size"]), extra)
+        return cls(K, dist, tuple(size), extra)
 
     def save(self, path: str | Path) -> None:
         """Write ``camera.json`` atomically."""
@@ -197,9 +218,6 @@ class Camera:
         """Read ``camera.json``."""
         path = Path(path)
         try:
-            cam = cls.from_dict(json.loads(path.read_text()))
+            return cls.from_dict(json.loads(path.read_text()))
         except (KeyError, ValueError, TypeError) as exc:
             raise CameraFileError(f"{path}: not a camera model: {exc}") from exc
-        if not (np.isfinite(cam.K).all() and np.isfinite(cam.dist).all()):
-            raise CameraFileError(f"{path}: the camera model has non-finite K or dist values")
-        return cam

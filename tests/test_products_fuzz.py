@@ -265,8 +265,6 @@ CASES: dict[str, tuple] = {
 
 # cases that fail until the fix of their bug (strict: each fix removes its entries)
 XFAIL: dict[str, str] = {
-    "camera fx 0": "camera.json: a zero focal length gives NaN points",
-    "camera image_size of 1": "camera.json: IndexError (exit 3)",
     "lasers A a text": "lasers.json: AttributeError (exit 3)",
     "lasers normal of 2": "lasers.json: a numpy reshape error, no key named",
     "lasers normal not unit": "lasers.json: a normal of length 2 silently normalised",
