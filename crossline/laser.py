@@ -9,12 +9,20 @@ from typing import Any
 
 import numpy as np
 
+from crossline.errors import CrosslineError
 from crossline.geometry import angle_between, plane_line_intersection
 from crossline.io.atomic import write_json
+from crossline.io.values import finite_array
 
-__all__ = ["LASERS", "LaserPlane", "LaserPlanes"]
+__all__ = ["LASERS", "LaserFileError", "LaserPlane", "LaserPlanes"]
 
 LASERS = ("A", "B")
+NORMAL_TOLERANCE = 1e-6  # | |n| - 1 | allowed in lasers.json (a stage writes unit normals)
+PLANE_FORM = "{'normal': [nx, ny, nz], 'd': d}"
+
+
+class LaserFileError(CrosslineError, ValueError):
+    """lasers.json cannot be read or holds no usable laser plane (names the file)."""
 
 
 @dataclass(frozen=True)
@@ -55,9 +63,16 @@ class LaserPlane:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> LaserPlane:
-        """Plane from a mapping with keys ``normal`` and ``d``."""
+        """Plane from a mapping with keys ``normal`` (a unit vector, within
+        ``NORMAL_TOLERANCE``) and ``d``, finite numbers; ValueError naming the key otherwise."""
+        n = finite_array(data, "normal", (3,), "the plane's unit normal [nx, ny, nz]")
+        d = finite_array(data, "d", (), "the plane's offset d in mm (n · p + d = 0), a number")
+        length = float(np.linalg.norm(n))
+        if abs(length - 1.0) > NORMAL_TOLERANCE:
+            raise ValueError(f"'normal' = {n.tolist()} has length {length:.9g}: expected a unit normal "
+                             f"(|n| = 1 within {NORMAL_TOLERANCE:g})")
         extra = {k: v for k, v in data.items() if k not in ("normal", "d")}
-        return cls(np.array(data["normal"], dtype=np.float64), float(data["d"]), extra)
+        return cls(n, float(d), extra)
 
 
 @dataclass(frozen=True)
@@ -116,10 +131,23 @@ class LaserPlanes:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> LaserPlanes:
-        """Planes from a ``lasers.json`` mapping (``A``, and ``B`` if the rig has two lasers)."""
+        """Planes from a ``lasers.json`` mapping (``A``, and ``B`` if the rig has two lasers);
+        ValueError naming the laser, the key and what was expected where one is not a plane."""
+        if not isinstance(data, dict):
+            raise ValueError(f"expected a JSON object with the plane of laser A (and B), "
+                             f"got {type(data).__name__}")
+        planes: dict[str, LaserPlane] = {}
+        for name in LASERS:
+            if name == "A" and name not in data:
+                raise ValueError(f"no laser A: expected the plane of laser A as {PLANE_FORM}")
+            if name in data:
+                try:
+                    planes[name] = LaserPlane.from_dict(data[name])
+                except ValueError as exc:
+                    raise ValueError(f"laser {name}: {exc} (expected the plane of laser {name} "
+                                     f"as {PLANE_FORM})") from None
         extra = {k: v for k, v in data.items() if k not in LASERS}
-        b = LaserPlane.from_dict(data["B"]) if "B" in data else None
-        return cls(LaserPlane.from_dict(data["A"]), b, extra)
+        return cls(planes["A"], planes.get("B"), extra)
 
     def save(self, path: str | Path) -> None:
         """Write ``lasers.json`` atomically."""
@@ -127,9 +155,9 @@ class LaserPlanes:
 
     @classmethod
     def load(cls, path: str | Path) -> LaserPlanes:
-        """Read ``lasers.json``."""
+        """Read ``lasers.json``; LaserFileError naming the file and what is wrong."""
         path = Path(path)
         try:
             return cls.from_dict(json.loads(path.read_text()))
         except (KeyError, ValueError, TypeError) as exc:
-            raise ValueError(f"{path}: not a laser-plane file: {exc}") from exc
+            raise LaserFileError(f"{path}: not a laser-plane file: {exc}") from exc

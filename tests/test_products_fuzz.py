@@ -265,10 +265,6 @@ CASES: dict[str, tuple] = {
 
 # cases that fail until the fix of their bug (strict: each fix removes its entries)
 XFAIL: dict[str, str] = {
-    "lasers A a text": "lasers.json: AttributeError (exit 3)",
-    "lasers normal of 2": "lasers.json: a numpy reshape error, no key named",
-    "lasers normal not unit": "lasers.json: a normal of length 2 silently normalised",
-    "lasers d inf": "lasers.json: an infinite d gives NaN points",
     "handeye T scaled": "handeye.json: a T_tool_cam that is not rigid is used",
     "handeye T mirrored": "handeye.json: a mirrored T_tool_cam is used",
     "report: dist of 4, fuse statistics of texts": "report: ValueError (exit 3)",

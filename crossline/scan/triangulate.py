@@ -100,15 +100,8 @@ def load_handeye(path: str | Path) -> np.ndarray:
 
 
 def _load_calibration(camera_json, lasers_json) -> tuple[Camera, LaserPlanes]:
-    try:
-        cam = Camera.load(camera_json)
-    except (OSError, ValueError) as exc:
-        raise StageError(f"{camera_json}: cannot read the camera model ({exc})") from exc
-    try:
-        planes = LaserPlanes.load(lasers_json)
-    except (OSError, ValueError) as exc:
-        raise StageError(f"{lasers_json}: cannot read the laser planes ({exc})") from exc
-    return cam, planes
+    """The camera and the laser planes; their readers' errors name the file and the key."""
+    return Camera.load(camera_json), LaserPlanes.load(lasers_json)
 
 
 def _check_lasers(states: np.ndarray, scan: str, rig_lasers: tuple[str, ...], planes: Any,
