@@ -265,8 +265,6 @@ CASES: dict[str, tuple] = {
 
 # cases that fail until the fix of their bug (strict: each fix removes its entries)
 XFAIL: dict[str, str] = {
-    "handeye T scaled": "handeye.json: a T_tool_cam that is not rigid is used",
-    "handeye T mirrored": "handeye.json: a mirrored T_tool_cam is used",
     "report: dist of 4, fuse statistics of texts": "report: ValueError (exit 3)",
     "report: no plane B, points' side file of texts": "report: KeyError (exit 3)",
     "report: T mirrored, NaN vertices": "report: scipy's ValueError (exit 3)",

@@ -92,13 +92,15 @@ from crossline.calibrate.handeye_solvers import (
 )
 from crossline.calibrate.pose import board_pose
 from crossline.camera import Camera
-from crossline.errors import CalibrationError
+from crossline.errors import CalibrationError, CrosslineError
 from crossline.geometry import rotation_angle
 from crossline.io.atomic import write_json
+from crossline.io.values import rigid_transform
 
 __all__ = [
     "OPENCV_METHODS",
     "HandEye",
+    "HandEyeFileError",
     "check_motion",
     "chou_kamel",
     "consistency_margin",
@@ -116,6 +118,10 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+
+class HandEyeFileError(CrosslineError, ValueError):
+    """handeye.json cannot be read or holds no rigid T_tool_cam (names the file)."""
 
 
 @dataclass(frozen=True)
@@ -140,9 +146,14 @@ class HandEye:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> HandEye:
-        """From a mapping with ``T_tool_cam`` (and optionally ``method``)."""
+        """From a mapping with ``T_tool_cam``, a rigid transform, and optionally ``method``, a
+        text; ValueError naming the key and what was expected otherwise."""
+        T = rigid_transform(data, "T_tool_cam")
+        method = data.get("method", "refined")
+        if not isinstance(method, str):
+            raise ValueError(f"'method' = {method!r}: expected the name of the method, a text")
         extra = {k: v for k, v in data.items() if k not in ("T_tool_cam", "method")}
-        return cls(np.array(data["T_tool_cam"], dtype=np.float64), data.get("method", "refined"), extra)
+        return cls(T, method, extra)
 
     def save(self, path: str | Path) -> None:
         """Write ``handeye.json`` atomically."""
@@ -150,12 +161,12 @@ class HandEye:
 
     @classmethod
     def load(cls, path: str | Path) -> HandEye:
-        """Read ``handeye.json``."""
+        """Read ``handeye.json``; HandEyeFileError naming the file and what is wrong."""
         path = Path(path)
         try:
             return cls.from_dict(json.loads(path.read_text()))
         except (KeyError, ValueError, TypeError) as exc:
-            raise ValueError(f"{path}: not a hand-eye file: {exc}") from exc
+            raise HandEyeFileError(f"{path}: not a hand-eye file: {exc}") from exc
 
 
 # ----------------------------------------------------------------------------- stage

@@ -27,6 +27,7 @@ from crossline.camera import Camera
 from crossline.errors import StageError
 from crossline.geometry import transform_points
 from crossline.io.atomic import atomic_path, write_json
+from crossline.io.values import rigid_transform
 from crossline.laser import LaserPlanes
 from crossline.scan.centreline import blocked_ends, link_traces, smooth_along, trace_position
 from crossline.scan.cross_order import CrossOrder
@@ -88,15 +89,12 @@ def to_base(points_cam: np.ndarray, T_base_tool: np.ndarray, T_tool_cam: np.ndar
 
 
 def load_handeye(path: str | Path) -> np.ndarray:
-    """``T_tool_cam`` (4x4) from handeye.json."""
+    """``T_tool_cam`` (4x4, rigid) from handeye.json; StageError naming the file otherwise."""
     path = Path(path)
     try:
-        T = np.asarray(json.loads(path.read_text())["T_tool_cam"], dtype=np.float64)
-    except (OSError, KeyError, ValueError, TypeError) as exc:
-        raise StageError(f"{path}: not a hand-eye file with key 'T_tool_cam' ({exc})") from exc
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise StageError(f"{path}: 'T_tool_cam' must be a finite 4x4 matrix, got shape {T.shape}")
-    return T
+        return rigid_transform(json.loads(path.read_text()), "T_tool_cam")
+    except ValueError as exc:
+        raise StageError(f"{path}: not a hand-eye file: {exc}") from exc
 
 
 def _load_calibration(camera_json, lasers_json) -> tuple[Camera, LaserPlanes]:
