@@ -230,7 +230,11 @@ def build_report(
     scans: dict[str, Any] = {}
     form_key = FORM_KEYS[met["sphere_form_statistic"]]
     model = None
-    if all(inputs.get(k) for k in ("camera", "lasers", "handeye")):
+    lack = [x for x in getattr(rig, "lasers", LASERS) if x not in (inputs.get("lasers") or {})]
+    if inputs.get("lasers") and lack:  # the uncertainty draws the plane of every point's laser
+        log.warning("no measurement uncertainty: %s has no plane of laser %s, which rig.yaml names",
+                    interim_dir / "calibration" / "lasers.json", ", ".join(lack))
+    elif all(inputs.get(k) for k in ("camera", "lasers", "handeye")):
         from crossline.report.uncertainty import calibration_model
 
         try:

@@ -21,32 +21,20 @@ from crossline.geometry import make_transform
 __all__ = ["calibration_problem"]
 
 
-def _finite(value: Any, shape: tuple[int, ...]) -> bool:
-    try:
-        a = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        return False
-    return a.shape == shape and bool(np.isfinite(a).all())
-
-
 def calibration_problem(kind: str, data: dict) -> str | None:
-    """Why ``data`` (camera.json, lasers.json or handeye.json as read) lacks what the report
-    and the certificate read of a ``kind`` calibration, or None when it has it."""
-    if kind == "camera":
-        size, dist = data.get("image_size"), data.get("dist")
-        if not (_finite(data.get("K"), (3, 3)) and isinstance(dist, list) and _finite(dist, (len(dist),))
-                and isinstance(size, list) and len(size) == 2):
-            return "expected finite 'K' (3x3), 'dist' and 'image_size' [width, height]"
-    elif kind == "lasers":
-        for L in ("A", "B"):
-            if L == "A" or L in data:
-                pl = data.get(L)
-                if not (isinstance(pl, dict) and _finite(pl.get("normal"), (3,))
-                        and _finite(pl.get("d"), ()) and np.linalg.norm(pl["normal"]) > 0):
-                    return (f"expected the plane of laser {L} as {{'normal': [nx, ny, nz], 'd': d}}, "
-                            f"finite, the normal not zero")
-    elif kind == "handeye" and not _finite(data.get("T_tool_cam"), (4, 4)):
-        return "expected 'T_tool_cam', a finite 4x4 matrix"
+    """Why ``data`` (camera.json, lasers.json or handeye.json as read) is not a ``kind``
+    calibration that the report and the certificate can read, or None when it is one: the
+    readers' own checks (``Camera.from_dict``, ``LaserPlanes.from_dict``, ``HandEye.from_dict``:
+    the key and what was expected)."""
+    from crossline.calibrate.handeye import HandEye
+    from crossline.camera import Camera
+    from crossline.laser import LaserPlanes
+
+    reader = {"camera": Camera, "lasers": LaserPlanes, "handeye": HandEye}[kind]
+    try:
+        reader.from_dict(data)
+    except (KeyError, ValueError, TypeError) as exc:
+        return str(exc).strip('"')
     return None
 
 
