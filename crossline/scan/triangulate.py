@@ -32,7 +32,7 @@ from crossline.laser import LaserPlanes
 from crossline.scan.centreline import blocked_ends, link_traces, smooth_along, trace_position
 from crossline.scan.cross_order import CrossOrder
 from crossline.scan.labels import Disambiguator, check_pattern, reference_gap
-from crossline.scan.stripes import MERGED, read_stripes_meta
+from crossline.scan.stripes import MERGED, STRIPES_SCHEMA, read_stripes_meta
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +61,8 @@ POINTS_SCHEMA = pa.schema(
 _META_KEY = b"crossline"
 _LASER_NAMES = pa.array(["A", "B"], pa.string())  # a labelled point's laser, by code 0 / 1
 MIN_TRACE_COLUMNS = 3  # shorter traces are dropped with the trimmed stripe ends
+# the stripes file's columns triangulate reads (of STRIPES_SCHEMA's types)
+_STRIPE_COLUMNS = ("frame", "lasers", "u", "v", "strength", "width", "ridge", "flags")
 
 
 def triangulate(
@@ -100,6 +102,39 @@ def load_handeye(path: str | Path) -> np.ndarray:
 def _load_calibration(camera_json, lasers_json) -> tuple[Camera, LaserPlanes]:
     """The camera and the laser planes; their readers' errors name the file and the key."""
     return Camera.load(camera_json), LaserPlanes.load(lasers_json)
+
+
+def _check_stripe_columns(path: str | Path, schema: pa.Schema) -> None:
+    """Raise :class:`StageError` naming ``path`` unless it has the columns triangulate reads,
+    each of the type the stripe extractor writes (:data:`crossline.scan.stripes.STRIPES_SCHEMA`)."""
+    wrong = []
+    for name in _STRIPE_COLUMNS:
+        want = STRIPES_SCHEMA.field(name).type
+        i = schema.get_field_index(name)
+        if i < 0:
+            wrong.append(f"no column '{name}'")
+        elif schema.field(i).type != want:
+            wrong.append(f"column '{name}' is {schema.field(i).type}")
+    if wrong:
+        expected = ", ".join(f"{n} ({STRIPES_SCHEMA.field(n).type})" for n in _STRIPE_COLUMNS)
+        raise StageError(f"{path}: not a stripes file of the extractor: {'; '.join(wrong)} "
+                         f"(expected the columns {expected})")
+
+
+def _check_stripe_rows(path: str | Path, frame: np.ndarray, u: np.ndarray, v: np.ndarray) -> None:
+    """Raise :class:`StageError` naming ``path`` where a row group's centres are not finite or
+    its rows are out of frame order (the extractor writes neither)."""
+    bad = ~(np.isfinite(u) & np.isfinite(v))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise StageError(f"{path}: {int(bad.sum())} stripe centre(s) with a non-finite 'u' or 'v' "
+                         f"(first: frame {frame[i]}, u = {u[i]}, v = {v[i]}); the stripe extractor "
+                         f"writes finite centres only: extract the scan's stripes again")
+    back = np.flatnonzero(np.diff(frame) < 0)
+    if len(back):
+        i = int(back[0])
+        raise StageError(f"{path}: rows out of frame order (frame {frame[i + 1]} after frame "
+                         f"{frame[i]}); a stripes file lists its frames in increasing order")
 
 
 def _check_lasers(states: np.ndarray, scan: str, rig_lasers: tuple[str, ...], planes: Any,
@@ -197,6 +232,8 @@ def run_triangulate(
         raise StageError(f"{stripes}: cannot read the stripes file ({exc.strerror or exc})") from exc
     except (pa.ArrowException, ValueError) as exc:  # not a parquet file at all
         raise StageError(f"{stripes}: not a stripes file ({exc})") from exc
+    if not isinstance(smeta, dict):
+        raise StageError(f"{stripes}: not a stripes file (its crossline metadata is not a JSON object)")
     if smeta.get("scan") != scan or smeta.get("frame_range") != [0, len(sc.frames)]:
         raise StageError(f"{stripes}: holds scan {smeta.get('scan')!r} frames {smeta.get('frame_range')}, "
                          f"expected all {len(sc.frames)} frames of scan {scan!r}")
@@ -209,6 +246,7 @@ def run_triangulate(
     dis = Disambiguator(threshold_px, max_frame_gap, ambiguity_px, predict, bridge_columns,
                         track_references, order)
     pf = pq.ParquetFile(stripes)
+    _check_stripe_columns(stripes, pf.schema_arrow)
     next_pos = 0  # frames before this scan position have been given to the disambiguator
     n_points = 0
     trimmed = {"stripe_end": 0, "smoothing_window": 0}
@@ -232,6 +270,7 @@ def run_triangulate(
             u = t.column("u").to_numpy()
             v = t.column("v").to_numpy()
             flags = t.column("flags").to_numpy()
+            _check_stripe_rows(stripes, frame, u, v)
             try:
                 pos = np.fromiter((pos_of[f] for f in np.unique(frame).tolist()), np.int64)
             except KeyError as exc:
@@ -319,7 +358,7 @@ def run_triangulate(
                                  if rig_lasers == ("A",) else "")
             meta["counts"] = _only_lasers(meta["counts"], rig_lasers)
         if n_points == 0:  # raised inside the block: no file is left behind
-            raise StageError(f"scan {scan}: no stripe centre could be labelled A or B "
+            raise StageError(f"scan {scan}: no stripe centre could be labelled A or B in {stripes} "
                              f"(counts: {json.dumps(counts)})")
         w.add_key_value_metadata({_META_KEY: json.dumps(meta, sort_keys=True)})
     write_json(Path(stats) if stats is not None else out.with_suffix(".json"), meta)
