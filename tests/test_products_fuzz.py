@@ -269,9 +269,6 @@ XFAIL: dict[str, str] = {
     "report: no plane B, points' side file of texts": "report: KeyError (exit 3)",
     "report: T mirrored, NaN vertices": "report: scipy's ValueError (exit 3)",
     "report: method a list, x read as float": "report: TypeError (exit 3)",
-    "points without frame": "points: every point taken as frame 0",
-    "points x_cam NaN": "points: SVD did not converge (exit 3)",
-    "points metadata a list": "points: AttributeError (exit 3)",
     "report: arm draws cut, points cut": "arm draws: BadZipFile (exit 3)",
     "report: arm draws NaN, vertex count": "arm draws: NaN sigmas taken",
 }

@@ -28,7 +28,8 @@ def read_points_columns(path: Path) -> dict[str, Any]:
 
     Returns ``xyz`` (N, 3) float64 base frame, ``laser`` (N,) uint8 codes (1 = A, 2 = B,
     0 = other), ``frame`` (N,) int64 and ``width`` (N,) float32 (where the file has it) of the
-    points with finite x, y, z; ``non_finite`` counts the others. Where the file has x_cam,
+    points with finite x, y, z (and x_cam, y_cam, z_cam where it has those); ``non_finite``
+    counts the others. A file without frame, laser, x, y or z is refused. Where the file has x_cam,
     y_cam, z_cam, ``cameras`` = (frames, camera centres) from them (:class:`FrameMoments`)
     instead of the points themselves. Strings never become Python objects: a long scan's
     DataFrame would hold several hundred bytes a point.
@@ -41,10 +42,11 @@ def read_points_columns(path: Path) -> dict[str, Any]:
         names = set(f.schema_arrow.names)
     except Exception as exc:  # pyarrow raises several types for broken files
         raise StageError(f"{path}: cannot be read as parquet ({exc})") from exc
-    missing = [c for c in ("x", "y", "z") if c not in names]
+    missing = [c for c in ("frame", "laser", "x", "y", "z") if c not in names]
     if missing:
+        stripes = {"u", "v"} <= names and "x" not in names
         what = ("a stripes file (pixel centres u, v), not a points file: triangulate turns it into "
-                "points" if {"u", "v"} <= names else "expected frame, laser, x, y, z, ...")
+                "points" if stripes else "expected frame, laser, x, y, z, ...")
         raise StageError(f"{path}: missing column(s) {missing}; {what}")
     n = f.metadata.num_rows
     if n == 0:
@@ -61,6 +63,9 @@ def read_points_columns(path: Path) -> dict[str, Any]:
             t = f.read_row_group(g, columns=[c for c in _POINT_COLUMNS if c in names])
             xyz = np.column_stack([t[c].to_numpy() for c in ("x", "y", "z")]).astype(np.float64)
             ok = np.isfinite(xyz).all(1)
+            if moments is not None:  # a point is in both frames or in neither
+                pc_cam = np.column_stack([t[c].to_numpy() for c in ("x_cam", "y_cam", "z_cam")])
+                ok &= np.isfinite(pc_cam.astype(np.float64)).all(1)
             m = int(ok.sum())
             out["xyz"][k:k + m] = xyz[ok]
             if "laser" in names:
@@ -71,8 +76,7 @@ def read_points_columns(path: Path) -> dict[str, Any]:
             if "frame" in names:
                 out["frame"][k:k + m] = t["frame"].to_numpy()[ok]
             if moments is not None:
-                moments.add(out["frame"][k:k + m], np.column_stack(
-                    [t[c].to_numpy() for c in ("x_cam", "y_cam", "z_cam")])[ok], xyz[ok])
+                moments.add(out["frame"][k:k + m], pc_cam[ok], xyz[ok])
             if "width" in names:
                 out["width"][k:k + m] = t["width"].to_numpy()[ok]
             k += m

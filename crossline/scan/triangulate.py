@@ -372,4 +372,7 @@ def read_points_meta(path: str | Path) -> dict[str, Any]:
     md = pq.ParquetFile(path).metadata.metadata or {}
     if _META_KEY not in md:
         raise StageError(f"{path}: not a points file (no crossline metadata)")
-    return json.loads(md[_META_KEY])
+    meta = json.loads(md[_META_KEY])
+    if not isinstance(meta, dict):
+        raise StageError(f"{path}: not a points file (its crossline metadata is not a JSON object)")
+    return meta
