@@ -155,13 +155,6 @@ def run_export_cloud(ply: str | Path, out: str | Path) -> int:
         raise StageError(f"{ply}: cannot be read as a fused cloud ({exc})") from exc
     if len(cloud["points"]) == 0:
         raise StageError(f"{ply}: the cloud has no points; nothing to export")
-    for key in ("points", "normals"):
-        bad = np.flatnonzero(~np.isfinite(cloud[key]).all(axis=1)) if key in cloud else []
-        if len(bad):  # the fuse stage writes finite values only: a damaged or foreign file
-            raise StageError(f"{ply}: vertex {bad[0]} (of {len(cloud['points'])}) has non-finite "
-                             f"{'coordinates' if key == 'points' else 'normal'} "
-                             f"{cloud[key][bad[0]].tolist()} ({len(bad)} such vertices); a fused "
-                             f"cloud holds finite values only")
     if out.suffix.lower() != ".e57":
         raise StageError(f"{out}: only E57 (.e57) is written; PLY is the fused cloud itself")
     write_e57(out, cloud["points"], cloud.get("normals"), name=ply.stem,

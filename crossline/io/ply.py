@@ -63,7 +63,8 @@ def read_ply(path: str | Path) -> dict[str, np.ndarray]:
     """Vertex properties of a binary little-endian PLY (such as ``write_ply``'s) by name.
 
     Returns ``{"points": (N, 3)}`` plus ``"normals"``, ``"laser"``, ``"frame"`` and any other
-    property present (as 1-D arrays). Raises ValueError for other PLY flavours.
+    property present (as 1-D arrays). Raises ValueError naming the file for other PLY flavours,
+    a file that does not hold what its header declares, and non-finite coordinates or normals.
     """
     path = Path(path)
     with open(path, "rb") as f:
@@ -77,10 +78,12 @@ def read_ply(path: str | Path) -> dict[str, np.ndarray]:
         fields: list[tuple[str, str]] = []
         n = 0
         element = None
+        later = False  # an element after the vertices (faces): the file holds more than them
         for ln in lines:
             parts = ln.split()
             if parts[:1] == ["element"]:
                 element = parts[1] if len(parts) > 1 else ""
+                later = later or (element != "vertex" and bool(fields))
                 if element == "vertex":
                     if len(parts) != 3 or not parts[2].isdigit():
                         raise ValueError(f"{path}: header line {ln!r}: expected 'element vertex <count>'")
@@ -99,10 +102,15 @@ def read_ply(path: str | Path) -> dict[str, np.ndarray]:
             raise ValueError(f"{path}: the vertices have no {', '.join(missing)} property")
         start = end + len(b"end_header\n")
         dt = np.dtype(fields)
-        held = (path.stat().st_size - start) // dt.itemsize
+        size = path.stat().st_size - start
+        held = size // dt.itemsize
         if held < n:
             raise ValueError(f"{path}: truncated: the header declares {n} vertices of {dt.itemsize} "
                              f"bytes, the file holds {held} of them")
+        if not later and size != n * dt.itemsize:
+            raise ValueError(f"{path}: the header declares {n} vertices of {dt.itemsize} bytes "
+                             f"({n * dt.itemsize} bytes), the file holds {size} bytes after it: "
+                             f"not the file its header describes")
         names = [f for f, _ in fields]
         normals = all(k in names for k in ("nx", "ny", "nz"))
         out: dict[str, np.ndarray] = {"points": np.empty((n, 3))}
@@ -123,6 +131,12 @@ def read_ply(path: str | Path) -> dict[str, np.ndarray]:
                     out["normals"][a:b, i] = rows[k]
             for k in rest:
                 out[k][a:b] = rows[k]
+    for key, what in (("points", "coordinates"), ("normals", "normal")):
+        bad = np.flatnonzero(~np.isfinite(out[key]).all(axis=1)) if key in out else []
+        if len(bad):  # the fuse stage writes finite values only: a damaged or foreign file
+            raise ValueError(f"{path}: vertex {bad[0]} (of {n}) has non-finite {what} "
+                             f"{out[key][bad[0]].tolist()} ({len(bad)} such vertices); a fused "
+                             f"cloud holds finite values only")
     return out
 
 
