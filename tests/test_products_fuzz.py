@@ -267,8 +267,6 @@ CASES: dict[str, tuple] = {
 XFAIL: dict[str, str] = {
     "report: dist of 4, fuse statistics of texts": "report: ValueError (exit 3)",
     "report: no plane B, points' side file of texts": "report: KeyError (exit 3)",
-    "report: arm draws cut, points cut": "arm draws: BadZipFile (exit 3)",
-    "report: arm draws NaN, vertex count": "arm draws: NaN sigmas taken",
 }
 
 

@@ -15,6 +15,7 @@ uncertainty needs, and halve the file of a long scan), ``kind`` "posterior" or "
 
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -61,14 +62,19 @@ def read_arm_draws(path: str | Path) -> ArmDraws:
         with np.load(path, allow_pickle=False) as z:
             frames, origins = np.asarray(z["frames"]), np.asarray(z["origins"], np.float64)
             sig, scaled, kind = np.asarray(z["sigmas"], np.float64), z["scaled"], str(z["kind"])
-    except (OSError, ValueError, KeyError, EOFError) as exc:
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
         raise CrosslineError(f"{path}: not an arm-draws file of the fuse stage ({exc})") from None
     F = len(frames)
-    if (frames.ndim != 1 or origins.shape != (F, 3) or sig.shape != (6,) or scaled.ndim != 3
-            or scaled.shape[1:] != (F, 6) or kind not in KINDS or np.any(np.diff(frames) <= 0)):
+    if (frames.ndim != 1 or frames.dtype.kind not in "iu" or origins.shape != (F, 3)
+            or sig.shape != (6,) or scaled.ndim != 3 or scaled.shape[1:] != (F, 6)
+            or kind not in KINDS or np.any(np.diff(frames) <= 0)):
         raise CrosslineError(
-            f"{path}: arm draws malformed: frames {frames.shape} (increasing), origins "
-            f"{origins.shape} (F, 3), sigmas {sig.shape} (6,), draws {scaled.shape} (D, F, 6), "
-            f"kind {kind!r} ({' or '.join(KINDS)})")
+            f"{path}: arm draws malformed: frames {frames.shape} {frames.dtype} (increasing whole "
+            f"numbers), origins {origins.shape} (F, 3), sigmas {sig.shape} (6,), draws "
+            f"{scaled.shape} (D, F, 6), kind {kind!r} ({' or '.join(KINDS)})")
+    for name, a in (("origins", origins), ("sigmas", sig), ("draws", scaled)):
+        if not np.isfinite(a).all():  # fuse writes finite draws (their RMS > 0) only
+            raise CrosslineError(f"{path}: arm draws malformed: '{name}' holds non-finite values; "
+                                 "the fuse stage writes finite ones only")
     return ArmDraws(frames.astype(np.int64), origins, (scaled.astype(np.float32) * sig).astype(
         np.float32), kind)
