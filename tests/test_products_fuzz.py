@@ -263,15 +263,7 @@ CASES: dict[str, tuple] = {
 }
 
 
-# cases that fail until the fix of their bug (strict: each fix removes its entries)
-XFAIL: dict[str, str] = {
-    "report: dist of 4, fuse statistics of texts": "report: ValueError (exit 3)",
-    "report: no plane B, points' side file of texts": "report: KeyError (exit 3)",
-}
-
-
-@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(strict=True, reason=XFAIL[n]))
-                                  if n in XFAIL else n for n in CASES])
+@pytest.mark.parametrize("name", CASES)
 def test_broken_product(made: Made, name: str) -> None:
     """One or two products broken, the command that reads them run on the unbroken capture;
     where the case gives a text, it must be refused (exit 2) with a message holding it. A

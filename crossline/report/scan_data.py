@@ -35,6 +35,50 @@ def _read_json(path: Path) -> dict | None:
     return data if isinstance(data, dict) else None
 
 
+# what the report reads of the stages' side files (keys absent are fine): a type, or a dict of
+# what it reads inside; NUMBER takes None (a non-finite figure as the stages write it)
+NUMBER = "number"
+POINTS_STATS = {"extractor": str, "params": {"smooth_px": NUMBER},
+                "counts": {"labelled_by_order": {"frames": NUMBER, "by_previous_frames": NUMBER,
+                                                 "by_order": NUMBER}}}
+FUSE_STATS = {**{k: NUMBER for k in ("n_input", "n_outliers", "n_after_outlier_removal", "n_output")},
+              "parameters": dict,
+              "refine": {"skipped": str, **{k: NUMBER for k in (
+                  "crossings", "used", "frames", "frames_with_crossings", "gap_rms_before_mm",
+                  "gap_rms_after_mm", "ab_offset_mm", "correction_rms_mm", "correction_max_mm")}}}
+
+
+def _stats_problem(data: Any, spec: dict, where: str = "") -> str | None:
+    """Why ``data`` does not hold what ``spec`` says the report reads, or None."""
+    if not isinstance(data, dict):
+        return f"{where or 'the file'} is {type(data).__name__}, expected a JSON object"
+    for key, want in spec.items():
+        if key not in data:
+            continue
+        v, at = data[key], f"{where}.{key}" if where else key
+        if isinstance(want, dict):
+            why = _stats_problem(v, want, at)
+            if why is not None:
+                return why
+        elif want == NUMBER:
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int | float)):
+                return f"'{at}' = {v!r:.60} is not a number"
+        elif not isinstance(v, want):
+            return f"'{at}' = {v!r:.60} is not a JSON {'object' if want is dict else 'text'}"
+    return None
+
+
+def _read_stats(path: Path, spec: dict) -> dict | None:
+    """A stage's side file (JSON) as the report reads it, None (with a warning naming the file
+    and the key) when it is missing, broken or holds something else where the report reads."""
+    data = _read_json(path)
+    why = None if data is None else _stats_problem(data, spec)
+    if why is not None:
+        log.warning("%s: %s; its figures are left out", path, why)
+        return None
+    return data
+
+
 @dataclass
 class ScanData:
     """What the report knows about one scan (arrays for plots included)."""
@@ -136,7 +180,7 @@ def _load_scan(
     side = interim / "points" / f"{name}.json"
     if side.is_file():
         files.append(("interim", f"points/{name}.json", side))
-        sd.points_info = _read_json(side)
+        sd.points_info = _read_stats(side, POINTS_STATS)
     ply = processed / f"{name}.ply"
     if ply.is_file():
         files.append(("processed", f"{name}.ply", ply))
@@ -157,7 +201,7 @@ def _load_scan(
     for cand in (processed / f"{name}.fuse.json", processed / f"{name}.json"):
         if cand.is_file():
             files.append(("processed", cand.name, cand))
-            sd.fuse_stats = _read_json(cand)
+            sd.fuse_stats = _read_stats(cand, FUSE_STATS)
             break
     arm = processed / f"{name}.arm.npz"
     if arm.is_file():
