@@ -866,7 +866,24 @@ def test_off_frames_take_the_room_s_light_out_where_it_stood_still(tmp_path):
     assert pq.read_table(tmp_path / "gathered.parquet").to_pandas().equals(runs["still", "subtract"][1])
 
     (tmp_path / "still" / "scans" / "plate" / "frames" / "000007.png").write_bytes(b"\x89PNG\r\n\x1a\n")
-    with pytest.raises(CrosslineError, match="000007.png"):
+    with pytest.raises(CrosslineError, match=r"000007\.png"):
         run_extract_stripes(tmp_path / "still", "plate", tmp_path / "bad.parquet", extractor="gaussian",
                             threads=2)
     assert not (tmp_path / "bad.parquet").exists()
+
+
+@pytest.mark.parametrize("meta", [b"[1, 2]", b"{not json", b'{"frame_range": "0-3", "counts": {}}'])
+def test_gather_refuses_a_chunk_whose_metadata_is_broken(tmp_path, meta):
+    """A chunk whose crossline metadata is a list, not JSON, or lacks its frame range is named,
+    not a traceback (found by reading gather_stripes for issue 23.2)."""
+    import pyarrow as pa
+
+    from crossline.errors import StageError
+    from crossline.scan.stripes import STRIPES_SCHEMA, gather_stripes
+
+    path = tmp_path / "part0-of-1.parquet"
+    table = pa.Table.from_pylist([], schema=STRIPES_SCHEMA)
+    pq.write_table(table.replace_schema_metadata({b"crossline": meta}), path)
+    with pytest.raises(StageError, match=r"part0-of-1\.parquet"):
+        gather_stripes([path], tmp_path / "out.parquet")
+    assert not (tmp_path / "out.parquet").exists()

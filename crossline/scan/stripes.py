@@ -437,10 +437,19 @@ def _noise_columns(rows: list[tuple[int, float, float]]) -> dict[str, list]:
 
 def read_stripes_meta(path: str | Path) -> dict[str, Any]:
     """The parameters and counts stored in a stripes parquet's schema metadata."""
-    md = pq.ParquetFile(path).metadata.metadata or {}
+    try:
+        md = pq.ParquetFile(path).metadata.metadata or {}
+    except Exception as exc:  # pyarrow raises several types for broken files
+        raise StageError(f"{path}: cannot be read as parquet ({exc})") from exc
     if _META_KEY not in md:
         raise StageError(f"{path}: not a stripes file (no crossline metadata)")
-    return json.loads(md[_META_KEY])
+    try:
+        meta = json.loads(md[_META_KEY])
+    except ValueError as exc:
+        raise StageError(f"{path}: its crossline metadata is not JSON ({exc})") from exc
+    if not isinstance(meta, dict):
+        raise StageError(f"{path}: its crossline metadata is a {type(meta).__name__}, expected an object")
+    return meta
 
 
 def iter_stripe_groups(path: str | Path) -> Iterator[pd.DataFrame]:
@@ -456,6 +465,13 @@ def gather_stripes(chunks: Iterable[str | Path], out: str | Path) -> dict[str, A
     if not chunks:
         raise StageError("gather-stripes: no chunk files given")
     metas = [read_stripes_meta(c) for c in chunks]
+    for c, m in zip(chunks, metas, strict=True):
+        fr, counts = m.get("frame_range"), m.get("counts")
+        if not (isinstance(fr, list) and len(fr) == 2 and all(type(x) is int for x in fr)
+                and isinstance(counts, dict) and all(type(v) is int for v in counts.values())
+                and type(m.get("frames_in_scan")) is int):
+            raise StageError(f"{c}: not a stripe chunk of extract-stripes (its metadata lacks whole "
+                             "numbers frame_range [start, stop], frames_in_scan and counts)")
     order = sorted(range(len(chunks)), key=lambda k: metas[k]["frame_range"][0])
     chunks = [chunks[k] for k in order]
     metas = [metas[k] for k in order]
