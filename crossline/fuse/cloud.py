@@ -232,13 +232,18 @@ def fuse_cloud(
     arm = None
     if refine_prior is not None and not lacking:
         mask = None if widths is None else usable_centres(lab, widths, crossing_max_width_ratio)
+        widths = None
         p, cameras, stats["refine"], arm = _refine(
             p, lab, fr, cameras, refine_prior, frame_table, threads, crossing_half_mm,
             crossing_min_angle_deg, mask, draws=arm_draws)
+        del mask
     elif arm_draws > 0 and (arm_prior is not None or refine_prior is not None):
         arm = _prior_draws(fr, cameras, arm_prior if arm_prior is not None else refine_prior,
                            frame_table, arm_draws, 0)
 
+    widths = None
+    if len(p) < 2**31 and len(fr) and 0 <= fr.min() and fr.max() < 2**31:
+        fr = fr.astype(np.int32)  # what the cloud keeps; 4 B a point less from here on
     if neighbours > 0 and len(p) > neighbours:
         # Open3D's test, slab by slab (crossline.tiles): the same points kept, a bounded memory
         keep = statistical_inliers(p, int(neighbours), float(std_ratio), normal_radius_mm,
@@ -256,7 +261,7 @@ def fuse_cloud(
     if voxel_mm > 0:
         vp, vlab, vfr = voxel_down_sample(p, lab, fr, voxel_mm)
     else:
-        vp, vlab, vfr = p, lab, fr.astype(np.int32)
+        vp, vlab, vfr = p, lab, fr.astype(np.int32, copy=False)
     stats["n_output"] = len(vp)
     stats["by_laser_output"] = _by_laser(vlab)
 

@@ -20,7 +20,7 @@ The errors get the arm's error model as prior (``ArmPrior``): per axis a Gauss-M
 its joint configuration along a sweep. The MAP estimate of all frames' errors at once is a
 sparse linear least-squares problem (one scalar per crossing against 6 unknowns per frame,
 and a prior whose information is banded once the drift is an unknown of its own), solved
-directly (dense Cholesky up to ``DENSE_MAX_FRAMES`` frames, sparse LU beyond); robust
+directly (dense Cholesky up to ``DENSE_MAX_FRAMES`` frames, sparse LDL^T beyond); robust
 (Huber) weights are re-estimated a few times.
 What a frame's crossings do not constrain (on a plane: the two in-plane shifts and the
 turn about the normal; for a single stripe also the tilt about the stripe) stays at what
@@ -144,7 +144,9 @@ def refine_frames(
         raise ValueError("`times` must give one increasing time per frame of `frames`")
     views = np.asarray(viewpoints, dtype=np.float64)
     org = views if origins is None else np.asarray(origins, dtype=np.float64)
-    lab = np.asarray(laser, dtype=np.int64)
+    lab = np.asarray(laser)
+    if lab.dtype.kind not in "iu":
+        lab = lab.astype(np.int64)
     ab = (lab == 1) | (lab == 2)
     use = ab
     if crossing_mask is not None:
@@ -152,12 +154,11 @@ def refine_frames(
         if mask.shape != lab.shape:
             raise ValueError(f"crossing_mask has shape {mask.shape}, the points {lab.shape}")
         use = ab & mask
-    if use.all():  # no copies of a long scan's arrays when every point may cross
-        cr = find_crossings(fpos, lab, p, views, half_mm=half_mm, min_angle_deg=min_angle_deg,
-                            threads=threads)
-    else:
-        cr = find_crossings(fpos[use], lab[use], p[use], views, half_mm=half_mm,
-                            min_angle_deg=min_angle_deg, threads=threads)
+    # the points that may cross by index: no copies of a long scan's arrays
+    subset = None if use.all() else np.flatnonzero(use).astype(np.int32 if len(p) < 2**31 else np.int64)
+    cr = find_crossings(fpos, lab, p, views, half_mm=half_mm, min_angle_deg=min_angle_deg,
+                        threads=threads, subset=subset)
+    del subset
     t1 = time.perf_counter()
     e, beta, info = solve_errors(cr, org, prior, times, huber=huber, draws=draws, seed=seed)
     posterior = info.pop("posterior", None)

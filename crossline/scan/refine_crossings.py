@@ -65,9 +65,11 @@ def usable_centres(laser: np.ndarray, width: np.ndarray,
     return keep
 
 
-def _stripes(frame_pos: np.ndarray, laser: np.ndarray, p: np.ndarray):
+def _stripes(frame_pos: np.ndarray, laser: np.ndarray, p: np.ndarray,
+             subset: np.ndarray | None = None):
     """Order points by stripe (frame, laser), then along the stripe's principal direction.
 
+    ``frame_pos`` and ``laser`` are those of ``p[subset]`` (all of ``p`` without ``subset``).
     Returns the order (N,), stripe id of each ordered point, and per stripe its start and end
     in the ordered arrays.
     """
@@ -75,9 +77,13 @@ def _stripes(frame_pos: np.ndarray, laser: np.ndarray, p: np.ndarray):
     ukey, sid, cnt = np.unique(key, return_inverse=True, return_counts=True)
     del key
     S = len(ukey)
-    mean = np.stack([np.bincount(sid, p[:, i], S) for i in range(3)], 1) / cnt[:, None]
+
+    def column(i: int) -> np.ndarray:
+        return p[:, i] if subset is None else p[subset, i]
+
+    mean = np.stack([np.bincount(sid, column(i), S) for i in range(3)], 1) / cnt[:, None]
     # one centred column at a time: (N, 3) temporaries cost a long scan 24 B a point each
-    q = [p[:, i] - mean[sid, i] for i in range(3)]
+    q = [column(i) - mean[sid, i] for i in range(3)]
     C = np.empty((S, 3, 3))
     for i in range(3):
         for j in range(i, 3):
@@ -165,6 +171,7 @@ def find_crossings(
     radius_mm: float | None = None,
     min_angle_deg: float = MIN_ANGLE_DEG,
     threads: int = 1,
+    subset: np.ndarray | None = None,
 ) -> Crossings:
     """Every crossing of an A stripe with a B stripe (of any frame, the same one included).
 
@@ -177,19 +184,27 @@ def find_crossings(
     ``MIN_SPACINGS`` of that laser's point spacings) and the crossing is the closest approach
     of the two curves; it is kept if it lies within half a window of both seeds, the
     stripes cross at ``min_angle_deg`` or more and the gap is under ``radius_mm``.
+    ``subset`` (indices) restricts the search to those points, as passing ``points[subset]``
+    (and the others likewise) would, without copies of a long scan's arrays.
     """
     from scipy.spatial import cKDTree
 
     p = np.asarray(points, dtype=np.float64)
-    fp = np.asarray(frame_pos, dtype=np.int64)
-    lab = np.asarray(laser, dtype=np.int64)
-    order, sid, start, end = _stripes(fp, lab, p)
+    fp = np.asarray(frame_pos)
+    lab = np.asarray(laser)
+    if fp.dtype.kind not in "iu" or lab.dtype.kind not in "iu":
+        raise ValueError("frame_pos and laser must be integer arrays")
+    if subset is not None:
+        fp, lab = fp[subset], lab[subset]
     # a long scan's per-point arrays in the narrowest type that holds them (tens of millions
     # of points: each int64 array is 8 B a point)
     small = len(p) < 2**31 and (len(fp) == 0 or int(fp.max()) < 2**31)
     itype = np.int32 if small else np.int64
+    order, sid, start, end = _stripes(fp, lab, p, subset)
     order, sid = order.astype(itype), sid.astype(itype)
-    po, fo, lo_ = p[order], fp[order].astype(itype), lab[order].astype(np.int8)
+    fo, lo_ = fp[order].astype(itype), lab[order].astype(np.int8)
+    del fp, lab
+    po = p[order if subset is None else subset[order]]
     del order
     a = np.flatnonzero(lo_ == 1).astype(itype)
     b = np.flatnonzero(lo_ == 2).astype(itype)

