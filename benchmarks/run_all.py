@@ -80,6 +80,20 @@ def machine() -> str:
     return f"{cpu}, {os.cpu_count()} cores{mem}, Python {platform.python_version()}"
 
 
+def _area(stem: str) -> tuple[str, str]:
+    """The area and command of a results file: a listed stem, a run of a listed benchmark with
+    ``--tag`` (``scale_arm``: bench_scale.py ... --tag _arm), or its notes (``scale_notes``)."""
+    if stem in AREAS:
+        return AREAS[stem]
+    for key, (area, cmd) in AREAS.items():
+        if stem.startswith(key + "_"):
+            tag = stem[len(key):]
+            if tag == "_notes":
+                return f"{area}: notes", f"{cmd} (notes on its runs, each run's command inside)"
+            return f"{area} ({tag[1:]})", f"{cmd} ... --tag {tag}"
+    return stem, f"python benchmarks/bench_{stem}.py"
+
+
 def collect() -> str:
     """The text of docs/results.md from the files in benchmarks/results/."""
     files = sorted(RESULTS.glob("*.txt"))
@@ -100,7 +114,7 @@ def collect() -> str:
         "",
     ]
     for p in files:
-        area, cmd = AREAS.get(p.stem, (p.stem, f"python benchmarks/bench_{p.stem}.py"))
+        area, cmd = _area(p.stem)
         written = _git("log", "-1", "--format=%h %cs", "--", str(p.relative_to(REPO)))
         if written == "?":
             written = "not committed yet"
