@@ -245,7 +245,7 @@ BROKEN = {
     "triangulate stripes not parquet": (["triangulate", "{good}", "plate", "--stripes", "{junk}",
                                          "--camera", "{camera}", "--lasers", "{parallel}",
                                          "--handeye", "{handeye}", "--out", "@p.parquet"],
-                                        "not a stripes file", "{junk}"),
+                                        "cannot be read as parquet", "{junk}"),
     "lasers NaN camera": (["calibrate-lasers", "{good}", "--camera", "{nan_camera}", "--out", "@l.json"],
                           "non-finite", "{nan_camera}"),
     "lasers camera not JSON": (["calibrate-lasers", "{good}", "--camera", "{junk}", "--out", "@l.json"],
