@@ -227,6 +227,7 @@ def find_crossings(
     for code in (1, 2):
         m = along & (lo_[1:] == code)
         sp[code] = float(np.median(step[m])) if m.any() else spacing
+    del step, along, lo_  # 10 B a point, not needed past here: the k-d tree below is the peak
     if radius_mm is None:
         radius_mm = max(0.1, 3.0 * spacing, sp[1], sp[2])
     # a quadratic needs its points: where a stripe is sampled sparsely (a camera of coarse
