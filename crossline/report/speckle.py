@@ -9,13 +9,33 @@ image-side aperture angle of the observation (``sin u' = 1 / (2 N (1 + m))`` for
 ``dx' / m``, and along the triangulation the point moves by ``dx / sin theta``, which gives
 their ``dz = C lambda / (2 pi sin u_obs sin theta)``. Divided by the pixel pitch, ``dx'`` is
 the bound on a stripe centre in pixels: no extractor can do better on one profile.
+
+The sensor adds its own noise: the photon (shot) noise of the stripe and of the background
+and the read noise. Its bound on the centre of one column profile is the Cramér-Rao lower
+bound (Kay, *Fundamentals of Statistical Signal Processing: Estimation Theory*, 1993, ch. 3;
+for a spot or line centre on a pixel detector, Winick, J. Opt. Soc. Am. A 3, 1809-1815, 1986):
+pixel ``i`` collects on average ``mu_i = B + A int_pixel exp(-(y - x0)^2 / (2 sigma^2)) dy``
+electrons, with variance ``mu_i + r^2`` (Poisson plus Gaussian read noise; the Poisson count
+taken as Gaussian of that variance, its dependence on ``x0`` left out, as Mortensen et al.,
+Nat. Methods 7, 377-381, 2010, do for localisation), so the Fisher information on ``x0`` is
+``I = sum_i (d mu_i / d x0)^2 / (mu_i + r^2)`` and ``var(x0) >= 1 / I``. For a wide,
+well-sampled stripe under shot noise alone this is ``sigma^2 / N`` with ``N`` the stripe's
+electrons. Speckle multiplies the light and shot noise is drawn afterwards, independently, so
+to first order their variances add: ``sqrt(speckle^2 + sensor^2)`` (``combined_bound_px``).
 """
 
 from __future__ import annotations
 
 import math
 
-__all__ = ["centre_bound_px", "smoothing_gain"]
+import numpy as np
+from scipy.special import ndtr
+
+__all__ = ["centre_bound_px", "combined_bound_px", "sensor_bound_px", "smoothing_gain"]
+
+PHASES = 8  # sub-pixel positions of the centre the sensor bound is averaged over
+CHUNK = 4096  # profiles per block of the sensor bound, at most
+BUDGET = 2_000_000  # values per block (profiles x PHASES x pixels), ~16 MB an array
 
 
 def centre_bound_px(contrast: float, wavelength_nm: float, f_number: float, pixel_um: float,
@@ -42,3 +62,46 @@ def smoothing_gain(window_px: int) -> float:
         return 1.0
     w += 1 - w % 2  # an odd window, as the smoothing uses
     return float(math.sqrt(float((savgol_coeffs(w, 2) ** 2).sum())))
+
+
+def sensor_bound_px(peak_e, sigma_px, background_e=0.0, read_noise_e=0.0, prnu=0.0):
+    """Cramér-Rao bound (px, 1 sigma) on one column profile's centre from the sensor's noise."""
+    # peak_e: the Gaussian's peak (e- per pixel) and sigma_px its std (px) as the light reaches
+    # the pixels (PSF included); background_e (e- per pixel), read_noise_e (e-), prnu (the
+    # pixels' relative gain spread, a variance (prnu mu)^2); arrays broadcast. The pixels
+    # integrate the profile; the variance is averaged over PHASES sub-pixel centre positions.
+    a, s, b, r, q = np.broadcast_arrays(*(np.asarray(x, dtype=np.float64) for x in
+                                           (peak_e, sigma_px, background_e, read_noise_e, prnu)))
+    shape = a.shape
+    a, s, b, r, q = (x.reshape(-1) for x in (a, s, b, r, q))
+    out = np.full(a.size, np.nan)
+    ok = (a >= 0) & (s > 0) & (b >= 0) & (r >= 0) & (q >= 0) & np.isfinite(a + s + b + r + q)
+    out[(a == 0) & ok] = np.inf
+    idx = np.flatnonzero(ok & (a > 0))
+    idx = idx[np.argsort(s[idx], kind="stable")]  # narrow profiles first: blocks of like width
+    phase = (np.arange(PHASES) + 0.5) / PHASES - 0.5  # x0 - nearest pixel centre
+    k = 0
+    while k < idx.size:
+        j = idx[k : k + CHUNK]
+        half = int(np.ceil(8.0 * s[j[-1]])) + 2
+        j = j[: max(1, BUDGET // (PHASES * (2 * half + 2)))]
+        k += j.size
+        edge = np.arange(-half, half + 2) - 0.5  # pixel edges, relative to the nearest centre
+        # (profile, phase, edge): the profile's distance from each pixel edge, in sigmas
+        t = (edge[None, None, :] - phase[None, :, None]) / s[j, None, None]
+        g = np.exp(-0.5 * t * t)
+        t0, t1 = t[:, :, :-1], t[:, :, 1:]
+        # the profile's share in each pixel, from the tail nearer to it (no cancellation)
+        mass = np.where(t0 > 0, ndtr(-t0) - ndtr(-t1), ndtr(t1) - ndtr(t0))
+        aj, sj = a[j, None, None], s[j, None, None]
+        mu = b[j, None, None] + aj * sj * math.sqrt(2.0 * math.pi) * mass
+        dmu = aj * (g[:, :, :-1] - g[:, :, 1:])  # d mu_i / d x0
+        var = mu + r[j, None, None] ** 2 + (q[j, None, None] * mu) ** 2
+        fisher = np.divide(dmu * dmu, var, out=np.zeros_like(var), where=var > 0).sum(axis=2)
+        out[j] = np.sqrt((1.0 / fisher).mean(axis=1))
+    return out.reshape(shape) if shape else float(out[0])
+
+
+def combined_bound_px(speckle_px, sensor_px):
+    """Speckle and sensor noise together (px): independent to first order, their variances add."""
+    return np.hypot(speckle_px, sensor_px)
