@@ -523,3 +523,44 @@ def test_options_are_refused_with_what_was_expected(tmp_path):
     with pytest.raises(CrosslineError, match="unknown preset"):
         simulate(tmp_path / "x", preset="randm", progress=False)
     assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.slow
+def test_true_stripe_profiles_match_the_images(tmp_path):
+    """The true centre lines' profile columns (peak_e, sigma_px, background_e) describe the
+    stripe the images hold: a Gaussian fitted to each single-laser frame's column profile (in
+    electrons) has, at the median, the truth's peak, sigma (the PSF added) and background
+    within 10 % (speckle and noise scatter single profiles by more)."""
+    from scipy.optimize import curve_fit
+
+    rig = _tiny_rig(random_rig(0, small=True), frames=6)
+    root = simulate(tmp_path / "r", preset=rig, seed=0, quick=True, scans=["plate"],
+                    parts=["scans"], progress=False)
+    sensor = json.loads((root / "truth.json").read_text())["sensor"]
+    x0, y0, _, h = sensor["scan_window"]
+    gain, black, psf = sensor["gain_e_per_dn"], sensor["black_level_dn"], sensor["psf_sigma_px"]
+    frames = pd.read_csv(root / "scans" / "plate" / "frames.csv")
+    cl = pd.read_parquet(root / "truth" / "plate_centrelines.parquet")
+    cl = cl[cl["visible"] & (cl["surface"] == "plate")]
+    ratios = []
+    for _, f in frames[frames["lasers"].isin(["A", "B"])].iterrows():
+        img = cv2.imread(str(root / "scans" / "plate" / "frames" / f"{int(f['frame']):06d}.png"),
+                         cv2.IMREAD_UNCHANGED).astype(np.float64)
+        e = (img - black) * gain
+        c = cl[(cl["frame"] == f["frame"]) & (cl["laser"] == f["lasers"])]
+        for _, r in c.iloc[::5].iterrows():
+            st = float(np.hypot(r["sigma_px"], psf))
+            half = int(6 * st) + 3
+            k = int(np.rint(r["v"] - y0))
+            if k - half < 0 or k + half >= h:
+                continue
+            y = np.arange(k - half, k + half + 1, dtype=np.float64)
+            p = e[k - half : k + half + 1, int(r["u"]) - x0]
+            fit, _ = curve_fit(lambda y, a, m, s, b: b + a * np.exp(-0.5 * ((y - m) / s) ** 2), y, p,
+                               p0=[p.max(), r["v"] - y0, st, r["background_e"]])
+            ratios.append((fit[0] / (r["peak_e"] * r["sigma_px"] / st),
+                           abs(fit[2]) / np.sqrt(st * st + 1 / 12), fit[3] / r["background_e"]))
+    assert len(ratios) > 60
+    peak, sigma, background = np.median(ratios, axis=0)
+    assert peak == pytest.approx(1.0, abs=0.1) and sigma == pytest.approx(1.0, abs=0.1)
+    assert background == pytest.approx(1.0, abs=0.1)

@@ -424,12 +424,13 @@ def _render_all(rig: RigPreset, root: Path, seed: int, quick: bool, frames: int 
         tab = (pd.concat(scan_tables[name], ignore_index=True) if scan_tables[name]
                else pd.DataFrame(columns=["frame", "laser", "u", "v", "x_cam", "y_cam", "z_cam",
                                           "visible", "lit", "unoccluded", "surface", "cos_view",
-                                          "cos_incidence"]))
+                                          "cos_incidence", "peak_e", "sigma_px", "background_e"]))
         tab = tab.sort_values(["frame", "laser", "u", "v"], kind="mergesort").reset_index(drop=True)
         tab = tab.astype({"frame": "int64", "u": "int64", "v": "float64", "x_cam": "float64",
                           "y_cam": "float64", "z_cam": "float64", "visible": "bool", "lit": "bool",
                           "unoccluded": "bool", "surface": "str", "laser": "str",
-                          "cos_view": "float64", "cos_incidence": "float64"})
+                          "cos_view": "float64", "cos_incidence": "float64", "peak_e": "float64",
+                          "sigma_px": "float64", "background_e": "float64"})
         write_parquet(truth_dir / f"{name}_centrelines.parquet", tab)
         write_parquet(truth_dir / f"{name}_poses.parquet", pose_frames[name])
         st = sorted(scan_stats[name], key=lambda r: r["frame"])

@@ -26,12 +26,16 @@
   plane), visible (= lit and unoccluded), lit, unoccluded, surface (which primitive), cos_view
   and cos_incidence (cosines between the surface normal and the directions to the camera and to
   the emitter: a stripe on a face seen at grazing angle is visible but covers a sliver of a
-  pixel)), ``poses`` (``truth/<scan>_poses.parquet``: frame, time_s, lasers, the true
-  T_base_tool as x, y, z, qw, qx, qy, qz, and the reported-minus-true errors err_x, err_y, err_z
-  (mm, base) and err_rx, err_ry, err_rz (rad, flange)), ``surfaces``, ``frames``, ``pattern``,
-  ``trajectory`` and ``render_stats`` (an inclined sweep's ``trajectory`` adds ``incline_deg``);
-  gauge adds ``block`` (centre, axes, size), ball ``stem``, part ``design`` (the analytic
-  surface) and ``mesh_triangles``.
+  pixel), and the true profile along the column there: peak_e (electrons per pixel area at the
+  sheet's centre: white irradiance x albedo x vignetting, before the PSF and the speckle; NaN
+  where the ray meets another surface first), sigma_px (its Gaussian sigma along the column,
+  before the PSF: w(s) / 2 over the plane distance's change per row) and background_e (the
+  blurred ambient electrons at the pixel)), ``poses`` (``truth/<scan>_poses.parquet``: frame,
+  time_s, lasers, the true T_base_tool as x, y, z, qw, qx, qy, qz, and the reported-minus-true
+  errors err_x, err_y, err_z (mm, base) and err_rx, err_ry, err_rz (rad, flange)), ``surfaces``,
+  ``frames``, ``pattern``, ``trajectory`` and ``render_stats`` (an inclined sweep's
+  ``trajectory`` adds ``incline_deg``); gauge adds ``block`` (centre, axes, size), ball
+  ``stem``, part ``design`` (the analytic surface) and ``mesh_triangles``.
 
 Split from ``crossline.sim.capture`` (issue 21.3), which re-exports the names its importers use.
 """

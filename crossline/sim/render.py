@@ -73,6 +73,14 @@ def _nonzero(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return pts[:, 1].copy(), pts[:, 0].copy()
 
 
+def _background_at(img: np.ndarray, window, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The blurred ambient electrons (window image) at the pixels of full-sensor (u, v)."""
+    x0, y0, w, h = window
+    r = np.clip(np.rint(np.asarray(v) - y0).astype(np.int64), 0, h - 1)
+    c = np.clip(np.asarray(u, dtype=np.int64) - x0, 0, w - 1)
+    return img[r, c].astype(np.float64)
+
+
 def render_image(model: RigModel, scene: Scene, light: Light, window, lasers: tuple[str, ...],
                  rng: np.random.Generator, ambient: str = "coarse", noise: bool = True,
                  speckle: bool = True, truth: bool = True, colour=None):
@@ -96,6 +104,8 @@ def render_image(model: RigModel, scene: Scene, light: Light, window, lasers: tu
         for sh in sheets:
             m, rows, _ = stripe_truth(model, scene, sh, window, truth=truth)
             mask |= m
+            if rows is not None:
+                rows["background_e"] = _background_at(img, window, rows["u"], rows["v"])
             rows_by_laser[sh.name] = rows
         ys, xs = _nonzero(mask)
         vals, stats = render_band(model, scene, sheets, window, ys, xs)

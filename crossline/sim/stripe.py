@@ -205,6 +205,22 @@ def _plane_gradient_px(P, N, n_plane, cam: Camera) -> np.ndarray:
     return np.hypot(g[0], g[1])
 
 
+def _plane_change_per_row(P, N, n_plane, cam: Camera) -> np.ndarray:
+    """d f / d v (mm per px): the change of the plane distance f from one image row to the next
+    on the surface's tangent plane at P (normal N).
+
+    The ray r = P / z moves by dr = (0, 1/fy, 0); its hit on the plane N . X = N . P moves by
+    dP = z (dr - r (N . dr) / (N . r)) (to first order; distortion changes the scale by a few
+    per cent).
+    """
+    r = P / P[:, 2:3]
+    Nr = rowdot(N, r)
+    Nr = np.where(np.abs(Nr) < 1e-9, 1e-9, Nr)
+    dr = np.array([0.0, 1.0 / cam.fy, 0.0])
+    dP = P[:, 2:3] * (dr[None, :] - r * (dot3(N, dr) / Nr)[:, None])
+    return dot3(dP, n_plane)
+
+
 BAND_MARGIN = 1.1  # safety factor on the band's half-width (distortion, curvature)
 
 
@@ -293,13 +309,14 @@ def stripe_truth(model: RigModel, scene: Scene, sheet: LaserSheet, window, margi
             parts.append((u, v, P, N, np.full(len(u), cs.curve.prim)))
         if parts:
             u, v, P, N, prim = (np.concatenate(x) for x in zip(*parts, strict=True))
-            seen = _unoccluded(scene, P, N)
+            seen, hit_pid, hit_face = _unoccluded(scene, P, N)
             lit = _lit(scene, sheet, P, N)
             # how squarely the camera sees the surface and the sheet lights it: a stripe on a
             # face seen at grazing angle is true but nearly invisible
             cos_view = -rowdot(N, P) / norm3(P)
             to_e = sheet.e - P
             cos_inc = rowdot(N, to_e) / norm3(to_e)
+            peak_e, sigma_px = _profile_truth(scene, sheet, cam, P, N, prim, hit_pid, hit_face)
             order = np.lexsort((v, u))
             rows = {
                 "u": u[order], "v": v[order], "x_cam": P[order, 0], "y_cam": P[order, 1],
@@ -307,6 +324,7 @@ def stripe_truth(model: RigModel, scene: Scene, sheet: LaserSheet, window, margi
                 "unoccluded": seen[order], "surface": np.array(
                     [scene.prims[i].name for i in prim[order]], dtype=object),
                 "cos_view": cos_view[order], "cos_incidence": cos_inc[order],
+                "peak_e": peak_e[order], "sigma_px": sigma_px[order],
             }
     return mask, rows, w_ref
 
@@ -331,11 +349,32 @@ def _draw_band(mask, uv, rad, good):
                 cv2.polylines(mask, [pts.reshape(-1, 1, 2)], False, 1, thick, cv2.LINE_8, shift)
 
 
-def _unoccluded(scene: Scene, P: np.ndarray, N: np.ndarray) -> np.ndarray:
-    """Points that face the camera and are the first hit along their camera ray."""
+def _unoccluded(scene: Scene, P: np.ndarray, N: np.ndarray):
+    """Points that face the camera and are the first hit along their camera ray; the first
+    hit's primitive index and face."""
     front = rowdot(N, P) < 0
-    t, _, _ = scene.trace(ORIGIN, P, tmin=1e-9)
-    return front & (t >= 1.0 - 1e-9)
+    t, pid, face = scene.trace(ORIGIN, P, tmin=1e-9)
+    return front & (t >= 1.0 - 1e-9), pid, face
+
+
+def _profile_truth(scene: Scene, sheet: LaserSheet, cam: Camera, P: np.ndarray, N: np.ndarray,
+                   prim: np.ndarray, hit_pid: np.ndarray, hit_face: np.ndarray):
+    """The true stripe profile along the image column at centreline points: its peak
+    (electrons per pixel area: white irradiance x albedo x vignetting, before the PSF and the
+    speckle; NaN where the camera ray meets another surface first) and its Gaussian sigma
+    along the column (px, before the PSF: w(s) / 2 over |d f / d v|)."""
+    from crossline.sim.rig_model import vignetting
+
+    own = (hit_pid == np.array([scene.prims[i].pid for i in prim], dtype=hit_pid.dtype))
+    alb = np.full(len(P), np.nan)
+    if own.any():
+        j = np.flatnonzero(own)
+        _, a, _ = scene.shade(P[j], hit_pid[j], hit_face[j])
+        alb[j] = a
+    peak = sheet.irradiance(P, N, np.zeros(len(P))) * alb * vignetting(P[:, :2] / P[:, 2:3])
+    gv = _plane_change_per_row(P, N, sheet.n, cam)
+    sigma = 0.5 * sheet.width(norm3(P - sheet.e)) / np.maximum(np.abs(gv), 1e-12)
+    return peak, sigma
 
 
 def _lit(scene: Scene, sheet: LaserSheet, P: np.ndarray, N: np.ndarray) -> np.ndarray:
