@@ -353,12 +353,12 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
         if cover:
             out["truth"]["uncertainty_coverage"] = cover
     if tscan and tscan.get("centrelines") and sd.points_path is not None:
-        out["truth_labels"] = _label_truth(sd.points_path, truth_file(root, sd.name, tscan, "centrelines"),
-                                           files)
+        lines = truth_file(root, sd.name, tscan, "centrelines")
+        out["truth_labels"] = _label_truth(sd.points_path, lines, files)
         if out["truth_labels"] and truth:
             smooth = ((sd.points_info or {}).get("params") or {}).get("smooth_px")
             bound = _speckle_limit(out["truth_labels"].get("centre_error") or {}, truth,
-                                   sd.points_path, smooth)
+                                   sd.points_path, smooth, lines)
             if bound:
                 out["truth_labels"]["speckle_limit"] = bound
 

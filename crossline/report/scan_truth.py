@@ -43,25 +43,99 @@ def _label_truth(points: Path, centrelines: Path, files: list) -> dict[str, Any]
                            t["u"].to_numpy(), t["v"].to_numpy())
 
 
-def _speckle_limit(centre: dict, truth: dict, points: Path,
-                   smooth_px: int | None = None) -> dict[str, Any] | None:
+def _mixture_sigma(sigmas: np.ndarray) -> float:
+    """Robust sigma (1.4826 x the median absolute value) of zero-mean normal errors whose
+    sigmas are ``sigmas``, one draw each: what the achieved robust sigma estimates."""
+    from scipy.special import ndtr
+
+    s = np.asarray(sigmas, dtype=np.float64)
+    s = s[np.isfinite(s) & (s > 0)]
+    if s.size == 0:
+        return float("nan")
+    lo, hi = 0.0, 10.0 * float(s.max())
+    for _ in range(60):  # the median of |e|: the share of |e| <= q is 1/2
+        q = 0.5 * (lo + hi)
+        if float(np.mean(2.0 * ndtr(q / s) - 1.0)) < 0.5:
+            lo = q
+        else:
+            hi = q
+    return 1.4826 * 0.5 * (lo + hi)
+
+
+SENSOR_ROWS = 20000  # true centre points per laser the sensor bound is evaluated at, at most
+
+
+def _sensor_profiles(centrelines: Path | None, sensor: dict,
+                     found: dict[str, np.ndarray]) -> dict[str, dict] | None:
+    """Per laser: the true column profiles of the visible centre points as they reach the
+    pixels (peak and sigma after the PSF, background) from truth/<scan>_centrelines.parquet,
+    at the (frame, column) keys where the pipeline found a point of that laser (``found``:
+    frame * 2^20 + column), and the sensor's read noise with the ADC's rounding (gain^2 / 12)
+    and PRNU."""
+    import pandas as pd
+
+    need = ["frame", "laser", "u", "visible", "peak_e", "sigma_px", "background_e"]
+    if centrelines is None or not centrelines.is_file() or sensor.get("read_noise_e") is None:
+        return None
+    try:
+        t = pd.read_parquet(centrelines, columns=need)
+    except Exception:  # pyarrow raises several types; an older capture lacks the profile columns
+        return None
+    psf = float(sensor.get("psf_sigma_px") or 0.0)
+    read = float(np.hypot(float(sensor["read_noise_e"]), float(sensor.get("gain_e_per_dn") or 0.0)
+                          / np.sqrt(12.0)))
+    prnu = float(sensor.get("prnu") or 0.0)
+    out = {}
+    for name, g in t[t["visible"]].groupby("laser"):
+        a, s, b = (g[c].to_numpy(np.float64) for c in ("peak_e", "sigma_px", "background_e"))
+        key = g["frame"].to_numpy(np.int64) * (1 << 20) + g["u"].to_numpy(np.int64)
+        ok = np.isfinite(a) & np.isfinite(s) & np.isfinite(b) & (a > 0) & (s > 0)
+        ok &= np.isin(key, found.get(str(name), np.zeros(0, np.int64)))
+        a, s, b = a[ok], s[ok], b[ok]
+        if a.size > SENSOR_ROWS:  # a fixed sample: the same report from the same capture
+            k = np.random.default_rng(0).choice(a.size, SENSOR_ROWS, replace=False)
+            a, s, b = a[k], s[k], b[k]
+        if a.size < 10:
+            continue
+        st = np.hypot(s, psf)
+        # the PSF spreads the column profile, keeping its electrons: the peak falls by s / st
+        out[str(name)] = {"peak_e": a * s / st, "sigma_px": st, "background_e": b,
+                          "read_noise_e": read, "prnu": prnu}
+    return out
+
+
+def _speckle_limit(centre: dict, truth: dict, points: Path, smooth_px: int | None = None,
+                   centrelines: Path | None = None) -> dict[str, Any] | None:
     """Per laser: the speckle bound on one profile's centre (px, :mod:`crossline.report.speckle`,
     from the rig's optics in truth.json), the same after the centre lines' smoothing
     (``smooth_px`` columns, as if the columns' speckle were independent: the lower end), the
-    centres' achieved robust sigma against the true lines, and its ratio to each."""
+    centres' achieved robust sigma against the true lines, and its ratio to each.
+
+    With the true centre lines' profiles (``centrelines``: peak, sigma, background of each
+    true point where the pipeline found one), also the sensor's bound (shot and read noise,
+    Cramér-Rao, one per true point) and the combined bound (speckle and sensor, variances
+    added), each summarised as the robust sigma of errors drawn with the points' bounds, like
+    the achieved sigma; and the achieved sigma's ratio to the combined bound, for one profile
+    and after the smoothing.
+    """
     from crossline.io.columns import LASER_CODES, read_columns
-    from crossline.report.speckle import centre_bound_px, smoothing_gain
+    from crossline.report import speckle as sp
 
     sensor, cam = truth.get("sensor") or {}, truth.get("camera") or {}
     pitch, fno = sensor.get("pixel_pitch_um"), sensor.get("f_number")
     if not (pitch and fno and cam.get("K") and centre):
         return None
     try:
-        z = read_columns(points, ["laser", "z_cam"])
+        z = read_columns(points, ["frame", "laser", "u", "z_cam"])
     except Exception:  # pyarrow raises several types for broken files
         return None
     if "z_cam" not in z or "laser" not in z:  # an older points file without camera coordinates
         return None
+    found = {}
+    if "frame" in z and "u" in z:
+        key = z["frame"].astype(np.int64) * (1 << 20) + np.rint(z["u"]).astype(np.int64)
+        found = {n: np.unique(key[z["laser"] == c]) for n, c in LASER_CODES.items()}
+    profiles = _sensor_profiles(centrelines, sensor, found) or {}
     fx = float(cam["K"][0][0])
     out: dict[str, Any] = {}
     for name, ce in centre.items():
@@ -71,16 +145,34 @@ def _speckle_limit(centre: dict, truth: dict, points: Path,
             continue
         # magnification at the points' median depth: f / z, f = fx * pitch
         m = fx * float(pitch) * 1e-3 / float(np.median(zl))
-        b = centre_bound_px(float(las["speckle_contrast"]), float(las["wavelength_nm"]),
+        b = sp.centre_bound_px(float(las["speckle_contrast"]), float(las["wavelength_nm"]),
                             float(fno), float(pitch), m)
-        gain = smoothing_gain(int(smooth_px)) if smooth_px else 1.0
-        out[name] = {"bound_px": b, "achieved_sigma_px": ce["sigma_px"],
-                     "ratio": ce["sigma_px"] / b if b > 0 else None,
-                     "smooth_px": smooth_px, "bound_smoothed_px": b * gain,
-                     "ratio_smoothed": ce["sigma_px"] / (b * gain) if b > 0 else None,
-                     "contrast": float(las["speckle_contrast"]),
-                     "wavelength_nm": float(las["wavelength_nm"]), "f_number": float(fno),
-                     "pixel_um": float(pitch), "magnification": m}
+        gain = sp.smoothing_gain(int(smooth_px)) if smooth_px else 1.0
+        sig = ce["sigma_px"]
+        row = {"bound_px": b, "achieved_sigma_px": sig,
+               "ratio": sig / b if b > 0 else None,
+               "smooth_px": smooth_px, "bound_smoothed_px": b * gain,
+               "ratio_smoothed": sig / (b * gain) if b > 0 else None,
+               "contrast": float(las["speckle_contrast"]),
+               "wavelength_nm": float(las["wavelength_nm"]), "f_number": float(fno),
+               "pixel_um": float(pitch), "magnification": m}
+        pr = profiles.get(name)
+        if pr is not None:
+            each = sp.sensor_bound_px(pr["peak_e"], pr["sigma_px"], pr["background_e"],
+                                   pr["read_noise_e"], pr["prnu"])
+            sb = _mixture_sigma(each)
+            cb = _mixture_sigma(sp.combined_bound_px(b, each))
+            row.update({
+                "sensor_bound_px": sb, "combined_bound_px": cb,
+                "ratio_combined": sig / cb if cb > 0 else None,
+                "combined_bound_smoothed_px": cb * gain,
+                "ratio_combined_smoothed": sig / (cb * gain) if cb > 0 else None,
+                "sensor": {"points": int(each.size),
+                           "peak_e": float(np.median(pr["peak_e"])),
+                           "sigma_px": float(np.median(pr["sigma_px"])),
+                           "background_e": float(np.median(pr["background_e"])),
+                           "read_noise_e": pr["read_noise_e"], "prnu": pr["prnu"]}})
+        out[name] = row
     return out or None
 
 
