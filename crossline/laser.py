@@ -18,6 +18,9 @@ __all__ = ["LASERS", "LaserFileError", "LaserPlane", "LaserPlanes"]
 
 LASERS = ("A", "B")
 NORMAL_TOLERANCE = 1e-6  # | |n| - 1 | allowed in lasers.json (a stage writes unit normals)
+# two planes closer than this are one: sin of their angle (rad), and their distance (mm) per mm
+# of |d| (at least 1 mm): a plane copied, or written again with its numbers rounded
+SAME_PLANE_TOLERANCE = 1e-6
 PLANE_FORM = "{'normal': [nx, ny, nz], 'd': d}"
 
 
@@ -73,6 +76,18 @@ class LaserPlane:
                              f"(|n| = 1 within {NORMAL_TOLERANCE:g})")
         extra = {k: v for k, v in data.items() if k not in ("normal", "d")}
         return cls(n, float(d), extra)
+
+
+def _same_plane(a: LaserPlane, b: LaserPlane) -> str | None:
+    """Why plane ``b`` is plane ``a`` (the same normal, or its opposite, and the same offset,
+    within :data:`SAME_PLANE_TOLERANCE`), or None where they are two planes."""
+    s = 1.0 if float(a.normal @ b.normal) >= 0 else -1.0  # n, d and -n, -d are one plane
+    sin = float(np.linalg.norm(np.cross(a.normal, b.normal)))
+    apart = abs(a.d - s * b.d)
+    if sin > SAME_PLANE_TOLERANCE or apart > SAME_PLANE_TOLERANCE * max(1.0, abs(a.d)):
+        return None
+    return (f"its plane is laser A's (normal {b.normal.tolist()}, d = {b.d:.9g}: "
+            f"{np.degrees(np.arcsin(min(sin, 1.0))):.3g} deg and {apart:.3g} mm from A's)")
 
 
 @dataclass(frozen=True)
@@ -146,6 +161,11 @@ class LaserPlanes:
                 except ValueError as exc:
                     raise ValueError(f"laser {name}: {exc} (expected the plane of laser {name} "
                                      f"as {PLANE_FORM})") from None
+        if "B" in planes:
+            why = _same_plane(planes["A"], planes["B"])
+            if why is not None:
+                raise ValueError(f"laser B: {why}; two lasers in one plane make no cross: expected "
+                                 "two planes that cross in a line")
         extra = {k: v for k, v in data.items() if k not in LASERS}
         return cls(planes["A"], planes.get("B"), extra)
 

@@ -222,6 +222,11 @@ S, P = "cal/stripes.parquet", f"interim/points/{FUSED}.parquet"
 Y, A = f"processed/{FUSED}.ply", f"processed/{FUSED}.arm.npz"
 FJ, PJ = f"processed/{FUSED}.fuse.json", f"interim/points/{FUSED}.json"
 
+
+def _turned(plane: dict, nudge: float) -> dict:
+    """The same plane written as -n, -d (d moved by ``nudge`` mm)."""
+    return {**plane, "normal": [-x for x in plane["normal"]], "d": -plane["d"] + nudge}
+
 # (command, [(file, how it is broken), ...][, a text its refusal must hold]) by case name
 CASES: dict[str, tuple] = {
     "camera cut": ("triangulate", [(C, cut(0.5))]),
@@ -239,6 +244,10 @@ CASES: dict[str, tuple] = {
         lambda d: _plane(d, "B", normal=[2 * x for x in d["B"]["normal"]])))], "'normal'"),
     "lasers d inf": ("triangulate", [(L, edit_json(lambda d: _plane(d, "A", d=float("inf"))))], "'d'"),
     "lasers without B": ("triangulate", [(L, edit_json(lambda d: {k: v for k, v in d.items() if k != "B"}))]),
+    "lasers B the plane of A": ("triangulate", [(L, edit_json(lambda d: {**d, "B": d["A"]}))],
+                                "laser B", "one plane"),
+    "lasers B the plane of A turned": ("triangulate", [(L, edit_json(
+        lambda d: {**d, "B": _turned(d["A"], 1e-9)}))], "laser B", "one plane"),
     "handeye cut": ("triangulate", [(H, cut(0.5))]),
     "handeye T 3x4": ("triangulate", [(H, edit_json(lambda d: {**d, "T_tool_cam": d["T_tool_cam"][:3]}))]),
     "handeye T NaN": ("triangulate", [(H, edit_json(lambda d: _T(d, _nan)))]),
