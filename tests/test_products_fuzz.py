@@ -267,6 +267,10 @@ CASES: dict[str, tuple] = {
     "points x_cam NaN": ("fuse", [(P, edit_table(column("x_cam", every(3, np.nan))))]),
     "points no rows": ("fuse", [(P, edit_table(lambda t: t.slice(0, 0)))]),
     "points metadata a list": ("fuse", [(P, edit_table(metadata(b"[1]")))]),
+    "points x as text": ("fuse", [(P, edit_table(column("x", lambda a: a.astype(str))))], "'x'",
+                         "expected numbers"),
+    "points frame as text": ("fuse", [(P, edit_table(column("frame", lambda a: a.astype(str))))],
+                             "'frame'", "expected whole numbers"),
     "report: dist of 4, fuse statistics of texts": ("report", [
         (C, edit_json(lambda d: {**d, "dist": d["dist"][:4]})),
         (FJ, edit_json(lambda d: {k: "?" for k in d}))]),

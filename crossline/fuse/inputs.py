@@ -17,6 +17,7 @@ import numpy as np
 
 from crossline.errors import StageError
 from crossline.fuse.camera_centres import FrameMoments
+from crossline.io.columns import column_type_problems
 
 __all__ = ["read_points_columns"]
 
@@ -29,7 +30,9 @@ def read_points_columns(path: Path) -> dict[str, Any]:
     Returns ``xyz`` (N, 3) float64 base frame, ``laser`` (N,) uint8 codes (1 = A, 2 = B,
     0 = other), ``frame`` (N,) int64 and ``width`` (N,) float32 (where the file has it) of the
     points with finite x, y, z (and x_cam, y_cam, z_cam where it has those); ``non_finite``
-    counts the others. A file without frame, laser, x, y or z is refused. Where the file has x_cam,
+    counts the others. A file without frame, laser, x, y or z is refused, and one whose column
+    read is not of its kind (:func:`crossline.io.columns.column_type_problems`: frame whole
+    numbers, laser texts, the rest numbers; a number stored as text). Where the file has x_cam,
     y_cam, z_cam, ``cameras`` = (frames, camera centres) from them (:class:`FrameMoments`)
     instead of the points themselves. Strings never become Python objects: a long scan's
     DataFrame would hold several hundred bytes a point.
@@ -48,6 +51,9 @@ def read_points_columns(path: Path) -> dict[str, Any]:
         what = ("a stripes file (pixel centres u, v), not a points file: triangulate turns it into "
                 "points" if stripes else "expected frame, laser, x, y, z, ...")
         raise StageError(f"{path}: missing column(s) {missing}; {what}")
+    wrong = column_type_problems(f.schema_arrow, _POINT_COLUMNS)
+    if wrong:  # a number stored as text is not cast: the file is not what triangulate wrote
+        raise StageError(f"{path}: not a points file of triangulate: {'; '.join(wrong)}")
     n = f.metadata.num_rows
     if n == 0:
         raise StageError(f"{path}: has no points; nothing to fuse")

@@ -15,9 +15,42 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["LASER_CODES", "laser_codes_of", "read_columns"]
+__all__ = ["LASER_CODES", "column_type_problems", "laser_codes_of", "read_columns"]
 
 LASER_CODES = {"A": 1, "B": 2}  # 0: no laser, or one the rig does not have
+
+# what a column of a stage's table holds, by name, as the stages write it (triangulate's
+# POINTS_SCHEMA, the extractor's STRIPES_SCHEMA); every other column read holds numbers
+WHOLE = ("frame", "flags")  # int64, uint8
+TEXT = ("laser", "lasers")  # string
+
+
+def _kind(name: str, t) -> tuple[str, bool]:
+    """What column ``name`` must hold, and whether pyarrow type ``t`` holds it."""
+    import pyarrow as pa
+
+    if pa.types.is_dictionary(t):  # an encoding (pandas' categories): its values' type counts
+        t = t.value_type
+    if name in WHOLE:
+        return "whole numbers (an integer type, as the stages write it)", pa.types.is_integer(t)
+    if name in TEXT:
+        return "texts (string)", pa.types.is_string(t) or pa.types.is_large_string(t)
+    return ("numbers (float64, as the stages write it)",
+            pa.types.is_floating(t) or pa.types.is_integer(t))
+
+
+def column_type_problems(schema, columns: Sequence[str]) -> list[str]:
+    """Why each of ``columns`` that the pyarrow ``schema`` has does not hold what the stages
+    write there (a number stored as text, ...): one text a column, empty where all do."""
+    wrong = []
+    for name in columns:
+        i = schema.get_field_index(name)
+        if i < 0:
+            continue
+        want, ok = _kind(name, schema.field(i).type)
+        if not ok:
+            wrong.append(f"column '{name}' is {schema.field(i).type}: expected {want}")
+    return wrong
 
 
 def laser_codes_of(column) -> np.ndarray:
@@ -35,13 +68,18 @@ def read_columns(path: str | Path, columns: Sequence[str]) -> dict[str, np.ndarr
     """The named columns of a parquet file (those it has) as 1-D arrays of its rows.
 
     ``laser`` comes as :func:`laser_codes_of` codes; every other column in its own dtype.
-    Raises what pyarrow raises for a file that is not parquet (callers name the file).
+    Raises what pyarrow raises for a file that is not parquet, and ValueError where a column
+    read does not hold what the stages write there (:func:`column_type_problems`: a number
+    stored as text is not cast); callers name the file.
     """
     import pyarrow.parquet as pq
 
     f = pq.ParquetFile(path)
     names = set(f.schema_arrow.names)
     cols = [c for c in columns if c in names]
+    wrong = column_type_problems(f.schema_arrow, cols)
+    if wrong:
+        raise ValueError("; ".join(wrong))
     n = f.metadata.num_rows
     out: dict[str, np.ndarray] = {}
     k = 0

@@ -387,20 +387,21 @@ def _project32(P: np.ndarray, M: np.ndarray, offset: np.ndarray, block: int = 1 
 
 def _viewpoints(sd: ScanData) -> np.ndarray | None:
     """The camera centre (base frame) that saw each cloud point, from the points file."""
-    import pandas as pd
-
     from crossline.fuse import camera_centres
+    from crossline.io.columns import read_columns
 
     if sd.points_path is None or sd.cloud is None or "frame" not in sd.cloud:
         return None
-    try:
-        df = pd.read_parquet(sd.points_path, columns=["frame", "x_cam", "y_cam", "z_cam",
-                                                      "x", "y", "z"])
-    except Exception:  # an older points file without camera coordinates: no incidence
+    names = ["frame", "x_cam", "y_cam", "z_cam", "x", "y", "z"]
+    try:  # a number stored as text is refused, not cast (the scan's loading named the file)
+        c = read_columns(sd.points_path, names)
+    except Exception:  # pyarrow raises several types for broken files
         return None
-    frames, centres = camera_centres(df["frame"].to_numpy(np.int64),
-                                     df[["x_cam", "y_cam", "z_cam"]].to_numpy(np.float64),
-                                     df[["x", "y", "z"]].to_numpy(np.float64))
+    if any(len(c[k]) != len(c["frame"]) for k in names):  # an older points file without
+        return None  # camera coordinates: no incidence
+    frames, centres = camera_centres(c["frame"].astype(np.int64),
+                                     np.column_stack([c[k] for k in names[1:4]]).astype(np.float64),
+                                     np.column_stack([c[k] for k in names[4:]]).astype(np.float64))
     fr = np.asarray(sd.cloud["frame"], dtype=np.int64)
     pos = np.clip(np.searchsorted(frames, fr), 0, len(frames) - 1)
     if not np.isfinite(centres).all() or not (frames[pos] == fr).all():
