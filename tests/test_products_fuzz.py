@@ -65,6 +65,8 @@ import pytest
 
 from tests.test_cli_fuzz import FUSED, _argv, _fuse_argv, _snapshot, build_env, run_checked
 
+OTHER = "gauge"  # the scan whose points and arm draws stand in for the plate's in some cases
+
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("products_fuzz")]
 
 CALIBRATIONS = ("camera.json", "lasers.json", "handeye.json")
@@ -101,6 +103,18 @@ def made(quick_capture: Path, tmp_path_factory) -> Made:
         points / f"{FUSED}.parquet", scan / "frames.csv", processed / f"{FUSED}.ply",
         processed / f"{FUSED}.fuse.json", arm=processed / f"{FUSED}.arm.npz")]) == 0
     (processed / f"{FUSED}.stl").unlink(missing_ok=True)
+    # another scan's points and arm draws (gauge: its 24 frames numbered as plate's), beside them
+    other = products / "other"
+    other.mkdir()
+    assert main(["extract-stripes", str(env.base), OTHER, "--out", str(other / "stripes.parquet")]) == 0
+    argv, _ = _argv("triangulate", env.base, other, cal)
+    argv[argv.index(FUSED)] = OTHER
+    argv[argv.index("--stripes") + 1] = str(other / "stripes.parquet")
+    argv[argv.index("--out") + 1] = str(other / f"{OTHER}.parquet")
+    assert main(argv) == 0
+    assert main([str(a) for a in _fuse_argv(
+        other / f"{OTHER}.parquet", env.base / "scans" / OTHER / "frames.csv", other / f"{OTHER}.ply",
+        other / f"{OTHER}.fuse.json", arm=other / f"{OTHER}.arm.npz")]) == 0
     return Made(env.work, env.base, products)
 
 
@@ -169,6 +183,19 @@ def edit_npz(change: Callable[[dict], dict]) -> Callable[[Path], None]:
     return f
 
 
+def another(rel: str) -> Callable[[Path], None]:
+    """The file replaced by the case's ``rel`` (another scan's product, under other/)."""
+    def f(p: Path) -> None:
+        root = next(q for q in p.parents if (q / "other").is_dir())
+        _write(p, (root / rel).read_bytes())
+    return f
+
+
+def arm_frames(change: Callable[[dict], dict]) -> Callable[[Path], None]:
+    """The arm draws' arrays of their frames (frames, origins, scaled) changed together."""
+    return edit_npz(lambda z: {**z, **change({k: z[k] for k in ("frames", "origins", "scaled")})})
+
+
 def edit_bytes(old: bytes, new: bytes) -> Callable[[Path], None]:
     def f(p: Path) -> None:
         data = p.read_bytes()
@@ -221,6 +248,7 @@ C, L, H = (f"cal/{n}" for n in CALIBRATIONS)
 S, P = "cal/stripes.parquet", f"interim/points/{FUSED}.parquet"
 Y, A = f"processed/{FUSED}.ply", f"processed/{FUSED}.arm.npz"
 FJ, PJ = f"processed/{FUSED}.fuse.json", f"interim/points/{FUSED}.json"
+OP, OA = f"other/{OTHER}.parquet", f"other/{OTHER}.arm.npz"
 
 
 def _turned(plane: dict, nudge: float) -> dict:
@@ -271,6 +299,7 @@ CASES: dict[str, tuple] = {
                          "expected numbers"),
     "points frame as text": ("fuse", [(P, edit_table(column("frame", lambda a: a.astype(str))))],
                              "'frame'", "expected whole numbers"),
+    "points of another scan": ("fuse", [(P, another(OP))], f"scan {OTHER!r}"),
     "report: dist of 4, fuse statistics of texts": ("report", [
         (C, edit_json(lambda d: {**d, "dist": d["dist"][:4]})),
         (FJ, edit_json(lambda d: {k: "?" for k in d}))]),
@@ -285,6 +314,14 @@ CASES: dict[str, tuple] = {
     "report: arm draws NaN, vertex count": ("report", [
         (A, edit_npz(lambda z: {**z, "sigmas": np.full(6, np.nan)})),
         (Y, edit_bytes(b"element vertex ", b"element vertex 1"))]),
+    "report: points of another scan": ("report", [(P, another(OP))], f"scan {OTHER!r}", "frames.csv"),
+    "report: arm draws of another scan": ("report", [(A, another(OA))], "plate.arm.npz", "frames.csv",
+                                          "flange positions"),
+    "report: arm draws of half the frames": ("report", [(A, arm_frames(
+        lambda z: {k: v[..., :12, :] if k == "scaled" else v[:12] for k, v in z.items()}))],
+                                             "plate.arm.npz", "plate.ply", "no draws for frame"),
+    "report: arm draws of frames not in the table": ("report", [(A, arm_frames(
+        lambda z: {**z, "frames": z["frames"] + 100}))], "plate.arm.npz", "frames.csv", "not rows"),
     "export-cloud: cut": ("export-cloud", [(Y, cut(0.5))]),
     "export-cloud: NaN vertices": ("export-cloud", [(Y, ply_nan)]),
 }

@@ -49,12 +49,14 @@ def _prior_draws(fr: np.ndarray, cameras: tuple[np.ndarray, np.ndarray] | None, 
 
     frames = np.unique(fr) if cameras is None else np.asarray(cameras[0])
     times, origins = _frame_times(frames, frame_table, "the arm's uncertainty draws")
+    centre = "flange"
     if origins is None:
         if cameras is None:
             return None
         origins = np.asarray(cameras[1], dtype=np.float64)  # the camera centre stands in
+        centre = "camera"
     d = prior_draws(times, prior, len(frames), draws, np.random.default_rng(seed)) * prior.sigmas()
-    return ArmDraws(frames, origins, d.astype(np.float32), "prior")
+    return ArmDraws(frames, origins, d.astype(np.float32), "prior", centre)
 
 
 def _refine(
@@ -100,6 +102,6 @@ def _refine(
     # every point of a frame moves with it, so its camera centre does too
     C = correction_transforms(ref.rotation, ref.translation, ref.origins)
     moved = np.einsum("fij,fj->fi", C[:, :3, :3], views) + C[:, :3, 3]
-    post = None if ref.posterior is None else ArmDraws(frames, ref.origins, ref.posterior,
-                                                       "posterior")
+    post = None if ref.posterior is None else ArmDraws(
+        frames, ref.origins, ref.posterior, "posterior", "flange" if origins is not None else "camera")
     return ref.points, (frames, moved), info, post

@@ -18,6 +18,8 @@ from typing import Any
 
 import numpy as np
 
+from crossline.errors import StageError
+
 __all__ = ["ScanData", "points_per_frame"]
 
 # the report stage's logger, as before the split: its records keep their name
@@ -145,6 +147,70 @@ def points_per_frame(
     return out
 
 
+FLANGE_TOLERANCE_MM = 1e-6  # arm draws' flange origins are frames.csv's positions, copied
+
+
+def _same_scan_points(name: str, points: Path, frames: Path, n_frames: int | None) -> None:
+    """Raise a StageError naming ``points`` and ``frames`` (scan ``name``'s frames.csv, of
+    ``n_frames`` rows) where the points file's metadata says it holds another scan's points, or
+    the points of a frames table of another length (as fuse refuses them). A file without
+    the metadata (of another tool, or broken: its reading says so) has nothing to compare."""
+    from crossline.scan.triangulate import read_points_meta
+
+    try:
+        meta = read_points_meta(points)
+    except Exception:  # pyarrow raises several types for broken files
+        return
+    scan, n = meta.get("scan"), meta.get("frames")
+    if isinstance(scan, str) and scan != name:
+        raise StageError(f"{points}: holds the points of scan {scan!r} (its metadata), not of scan "
+                         f"{name!r}, whose frames table is {frames}: the points file of another "
+                         "scan; triangulate the scan again")
+    if isinstance(n, int) and not isinstance(n, bool) and n_frames is not None and n != n_frames:
+        raise StageError(f"{frames}: {n_frames} frames, but {points} was triangulated from the {n} "
+                         f"frames of scan {scan!r}: not that scan's frames table (or not its points "
+                         "file); triangulate the scan again")
+
+
+def _same_scan_arm(arm_path: Path, arm: Any, frames: Path, cloud: dict | None,
+                   cloud_name: str) -> None:
+    """Raise a StageError naming ``arm_path`` and the file it disagrees with where the arm
+    draws are not the scan's: a frame of the draws that is not a row of ``frames`` (the scan's
+    frames.csv), flange origins that are not that table's flange positions (draws centred on the
+    flange, as fuse writes them with a frames table), or a frame of the cloud (``cloud_name``)
+    without draws."""
+    from crossline.io.capture import read_frames_table
+
+    table = read_frames_table(frames)
+    order = np.argsort(table.frames, kind="stable")
+    ids = table.frames[order]
+    k = np.clip(np.searchsorted(ids, arm.frames), 0, max(len(ids) - 1, 0))
+    foreign = arm.frames if len(ids) == 0 else arm.frames[ids[k] != arm.frames]
+    if len(foreign):
+        raise StageError(f"{arm_path}: frame(s) {foreign[:5].tolist()} of its draws ({len(foreign)} "
+                         f"of {len(arm.frames)}) are not rows of {frames}: the arm draws of another "
+                         "scan (or of an older frames table); fuse the scan again")
+    if arm.centre == "flange":
+        flange = table.T_base_tool[order][k, :3, 3]
+        off = np.linalg.norm(arm.origins - flange, axis=1)
+        bad = np.flatnonzero(off > FLANGE_TOLERANCE_MM)
+        if len(bad):
+            i = bad[0]
+            raise StageError(
+                f"{arm_path}: the flange positions of its draws are not those of {frames} (frame "
+                f"{arm.frames[i]}: {np.round(arm.origins[i], 3).tolist()} mm in the draws, "
+                f"{np.round(flange[i], 3).tolist()} mm in the table; {len(bad)} of "
+                f"{len(arm.frames)} frames differ, by up to {off.max():.3g} mm): the arm draws of "
+                "another scan; fuse the scan again")
+    if cloud is not None and "frame" in cloud and len(cloud["frame"]):
+        seen = np.unique(np.asarray(cloud["frame"], dtype=np.int64))
+        lacking = np.setdiff1d(seen, arm.frames)
+        if len(lacking):
+            raise StageError(f"{arm_path}: no draws for frame(s) {lacking[:5].tolist()} of "
+                             f"{cloud_name} ({len(lacking)} of its {len(seen)} frames): not the "
+                             "arm draws of the fuse that made it; fuse the scan again")
+
+
 def _load_scan(
     name: str, spec: Any, root: Path, interim: Path, processed: Path, files: list
 ) -> ScanData:
@@ -169,14 +235,16 @@ def _load_scan(
             log.warning("%s: unreadable (%s)", fcsv, exc)
     pq = interim / "points" / f"{name}.parquet"
     if pq.is_file():
-        sd.points_path = pq
         files.append(("interim", f"points/{name}.parquet", pq))
+        _same_scan_points(name, pq, fcsv, None if sd.frame_ids is None else len(sd.frame_ids))
         try:
             cols = read_columns(pq, ["frame", "laser"])
             sd.point_frames = cols["frame"].astype(np.int64, copy=False)
             sd.point_lasers = cols["laser"]
         except Exception as exc:  # pyarrow raises several types for broken files
             log.warning("%s: unreadable (%s)", pq, exc)
+        else:
+            sd.points_path = pq  # the other readers of the points (depths, labels, viewpoints)
     side = interim / "points" / f"{name}.json"
     if side.is_file():
         files.append(("interim", f"points/{name}.json", side))
@@ -217,6 +285,9 @@ def _load_scan(
         else:
             if len(sd.arm.draws) == 0:
                 sd.arm, sd.arm_error = None, f"{arm.name} holds no draws (fuse.arm_draws: 0)"
+            elif fcsv.is_file():
+                _same_scan_arm(arm, sd.arm, fcsv, sd.cloud,
+                               str(ply) if sd.cloud_source == f"{name}.ply" else str(pq))
     else:
         sd.arm_error = f"no {arm.name} (the fuse stage's draws of the arm's pose errors)"
     return sd
