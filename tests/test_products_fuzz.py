@@ -10,34 +10,41 @@ artefact left behind, never a change to the capture.
 
 The products are made once for the module from test_cli_fuzz.py's capture (the quick capture,
 its true calibrations, the plate's stripes): the plate's points, and its cloud, fuse
-statistics and arm draws as fuse.smk writes them. Each case breaks one or two of them in a
-copy (hard links; the broken file rewritten) and runs one command:
+statistics and arm draws as fuse.smk writes them; and, under other/, the gauge's points and
+arm draws (its frames numbered as the plate's), which some cases put in the plate's place. Each
+case breaks one or two of them in a copy (hard links; the broken file rewritten) and runs one
+command:
 
 ==============================  ==========  =====================================================
 product                         command     cases
 ==============================  ==========  =====================================================
 calibration/camera.json         triangulate 6: cut, no K, K with text, K NaN, fx 0, image_size of 1
-calibration/lasers.json         triangulate 6: cut, A a text, normal of 2, normal not unit, d inf,
-                                            no plane B
+calibration/lasers.json         triangulate 8: cut, A a text, normal of 2, normal not unit, d inf,
+                                            no plane B, B the plane of A (as it is, and as -n, -d)
 calibration/handeye.json        triangulate 5: cut, 3x4, NaN, scaled (not rigid), mirrored
 stripes/<scan>.parquet          triangulate 7: cut, no column u, u as text, NaN centres, no rows,
                                             rows out of frame order, metadata not an object
-points/<scan>.parquet           fuse        6: cut, no x, no frame, x_cam NaN, no rows, metadata
-                                            not an object
-calibrations, points, cloud,    report      6 runs, 2 faults each: dist of 4 + fuse statistics of
-arm draws, side files                       texts; no plane B + points' side file of texts; T
-                                            mirrored + cloud with NaN vertices; hand-eye method a
-                                            list + cloud's x read as float; arm draws cut + points
-                                            cut; arm draws NaN + cloud's vertex count
+points/<scan>.parquet           fuse        9: cut, no x, no frame, x_cam NaN, no rows, metadata
+                                            not an object, x as text, frame as text, the gauge's
+calibrations, points, cloud,    report      5 runs, 2 faults each (measured, the faults named in
+arm draws, side files                       the log): dist of 4 + fuse statistics of texts; no
+                                            plane B + points' side file of texts; T mirrored +
+                                            points' frame as text; hand-eye method a list + arm
+                                            draws NaN; arm draws cut + points cut. 7 refusals: the
+                                            cloud with NaN vertices, x read as float, its vertex
+                                            count; the gauge's points, the gauge's arm draws, arm
+                                            draws of half the frames, of frames not in frames.csv
 <scan>.ply                      export-     2: cut, NaN vertices
                                 cloud
 ==============================  ==========  =====================================================
 
-38 explicit cases (no hypothesis: each kind of damage once, the same on every run), about 8 s
+49 explicit cases (no hypothesis: each kind of damage once, the same on every run), about 9 s
 of one core (products made once included; the report's runs most of it, its Monte Carlo cut
 to 2 draws on 2000 points as in test_cli_fuzz.py). Not covered: gather-stripes' chunks (its
 reader is crossline/scan/stripes.py's), the certificate (it shares the report's calibration
-check), a points file of another scan's frames given to the report.
+check), a fused cloud of another scan (a PLY says nothing of its scan: only its frames are
+checked, against the arm draws'), two laser planes parallel but apart (not one plane:
+lasers.json's reader takes them).
 
 Found (each fixed in the reader): triangulate exited 3 on a camera.json whose image_size was
 one number, a lasers.json plane that was a text, a stripes file without a column or whose
@@ -48,7 +55,12 @@ converge') and on metadata that was a list, and fused a file without 'frame' as 
 were of frame 0. The report exited 3 on a camera.json of 4 distortion coefficients, a mirrored
 T, a hand-eye method that was a list, a lasers.json without the rig's plane B, a cloud with
 NaN vertices or a property of another type, a cut arm-draws file and side files of texts; and
-drew NaN arm draws.
+drew NaN arm draws. Then (the four cases left open): triangulate took a lasers.json whose
+plane B was plane A's; fuse cast a points file's x or frame stored as text to numbers, and the
+report its frames; the report measured the unfused points in place of a damaged cloud (only
+its log naming the cloud), and took the gauge's points and arm draws for the plate's (each
+scan's frames are numbered 0..23: only the points' metadata and the draws' flange positions
+tell them apart).
 """
 
 from __future__ import annotations
@@ -306,14 +318,17 @@ CASES: dict[str, tuple] = {
     "report: no plane B, points' side file of texts": ("report", [
         (L, edit_json(lambda d: {k: v for k, v in d.items() if k != "B"})),
         (PJ, edit_json(lambda d: {k: "?" for k in d}))]),
-    "report: T mirrored, NaN vertices": ("report", [(H, edit_json(lambda d: _T(d, _mirror))), (Y, ply_nan)]),
-    "report: method a list, x read as float": ("report", [
+    "report: T mirrored, points' frame as text": ("report", [
+        (H, edit_json(lambda d: _T(d, _mirror))), (P, edit_table(column("frame", lambda a: a.astype(str))))]),
+    "report: method a list, arm draws NaN": ("report", [
         (H, edit_json(lambda d: {**d, "method": ["refined"]})),
-        (Y, edit_bytes(b"property double x\n", b"property float x\n"))]),
+        (A, edit_npz(lambda z: {**z, "sigmas": np.full(6, np.nan)}))]),
     "report: arm draws cut, points cut": ("report", [(A, cut(0.5)), (P, cut(0.5))]),
-    "report: arm draws NaN, vertex count": ("report", [
-        (A, edit_npz(lambda z: {**z, "sigmas": np.full(6, np.nan)})),
-        (Y, edit_bytes(b"element vertex ", b"element vertex 1"))]),
+    "report: NaN vertices": ("report", [(Y, ply_nan)], "plate.ply", "non-finite"),
+    "report: x read as float": ("report", [(Y, edit_bytes(b"property double x\n", b"property float x\n"))],
+                                "plate.ply", "cannot be read"),
+    "report: vertex count": ("report", [(Y, edit_bytes(b"element vertex ", b"element vertex 1"))],
+                             "plate.ply", "truncated"),
     "report: points of another scan": ("report", [(P, another(OP))], f"scan {OTHER!r}", "frames.csv"),
     "report: arm draws of another scan": ("report", [(A, another(OA))], "plate.arm.npz", "frames.csv",
                                           "flange positions"),

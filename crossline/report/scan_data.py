@@ -2,10 +2,18 @@
 
 ``ScanData`` holds what the report knows about one scan; ``_load_scan`` fills it from the
 capture's ``frames.csv``, the triangulated points (``points/<scan>.parquet`` and its side
-file) and the fused cloud (``<scan>.ply``, else the points themselves), noting every file it
-read for the provenance; ``points_per_frame`` counts the points of each frame by laser state;
-``_read_json`` reads a JSON input, None when it is missing or broken. Split from
-``crossline.report.accuracy`` (issue 21.3), which re-exports the names its importers use.
+file) and the fused cloud (``<scan>.ply``, else, where there is none, the points themselves),
+noting every file it read for the provenance; ``points_per_frame`` counts the points of each
+frame by laser state; ``_read_json`` reads a JSON input, None when it is missing or broken.
+Split from ``crossline.report.accuracy`` (issue 21.3), which re-exports the names its importers
+use.
+
+What the report would measure wrong it refuses (StageError naming the files, issue 23.2): a
+fused cloud that cannot be read (its figures would be of the unfused points, as if all were
+well), and a points file or arm draws of another scan (:func:`_same_scan_points`,
+:func:`_same_scan_arm`). What it only counts or draws with, it reads leniently: a points file
+or a side file that cannot be read, and arm draws that cannot be read, are named in the log
+and their figures left out (the arm draws' under the uncertainty's ``incomplete``).
 """
 
 from __future__ import annotations
@@ -254,9 +262,14 @@ def _load_scan(
         files.append(("processed", f"{name}.ply", ply))
         try:
             sd.cloud = read_ply(ply)
-            sd.cloud_source = f"{name}.ply"
         except (ValueError, KeyError, OSError) as exc:
-            log.warning("%s: unreadable (%s)", ply, exc)
+            # not the points in its stead: their figures (unfused, unrefined) would stand in the
+            # report as the cloud's, as if all were well
+            why = str(exc).removeprefix(f"{ply}: ")
+            raise StageError(f"{ply}: the fused cloud of scan {name!r} cannot be read ({why}); the "
+                             "report does not measure a damaged cloud: delete it and run the "
+                             "workflow again (its fuse stage makes it anew)") from None
+        sd.cloud_source = f"{name}.ply"
     if sd.cloud is None and pq.is_file():
         try:
             cols = read_columns(pq, ["x", "y", "z", "laser", "frame"])
