@@ -106,7 +106,9 @@ def transform_points(T: np.ndarray, p: np.ndarray, index: np.ndarray | None = No
     T = np.asarray(T, dtype=np.float64)
     p = np.asarray(p, dtype=np.float64)
     if index is not None:
-        idx = np.asarray(index, dtype=np.int64)
+        idx = np.asarray(index)
+        if idx.dtype.kind not in "iu":  # an int32 index stays one: no copy of a long scan's
+            idx = idx.astype(np.int64)
         if T.ndim != 3 or T.shape[1:] != (4, 4) or idx.ndim != 1 or p.shape != (idx.size, 3):
             raise ValueError(f"with an index, T must be (F, 4, 4), index (N,) and p (N, 3); got "
                              f"T {T.shape}, index {idx.shape}, p {p.shape}")

@@ -55,15 +55,21 @@ def slabs(points: np.ndarray, halo: float, target: int = SLAB_POINTS) -> Iterato
         return
     axis = int(np.argmax(np.ptp(p, axis=0)))
     order = np.argsort(p[:, axis], kind="stable")
+    if n < 2**31:
+        order = order.astype(np.int32)  # 4 B a point less, held while the slabs are worked
     xs = p[order, axis]
     k = -(-n // target)
     bounds = np.linspace(0, n, k + 1).round().astype(np.int64)
+    # every slab's reach found now, so that the sorted coordinates go before the work starts
+    cuts = []
     for lo, hi in pairwise(bounds.tolist()):
         a = int(np.searchsorted(xs, xs[lo] - halo, "left"))
         b = int(np.searchsorted(xs, xs[hi - 1] + halo, "right"))
-        yield Slab(order[lo:hi], order[a:b], lo - a, hi - a, axis,
-                   -np.inf if a == 0 else float(xs[lo] - halo),
-                   np.inf if b == n else float(xs[hi - 1] + halo))
+        cuts.append((lo, hi, a, b, -np.inf if a == 0 else float(xs[lo] - halo),
+                     np.inf if b == n else float(xs[hi - 1] + halo)))
+    del xs
+    for lo, hi, a, b, x0, x1 in cuts:
+        yield Slab(order[lo:hi], order[a:b], lo - a, hi - a, axis, x0, x1)
 
 
 def knn_mean_distance(points: np.ndarray, k: int, halo: float, *, threads: int = 1,

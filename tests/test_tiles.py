@@ -92,3 +92,27 @@ def test_camera_centres_from_chunked_moments(tmp_path):
     assert cols["non_finite"] == 1 and len(cols["xyz"]) == len(a) - 1
     assert np.array_equal(cols["laser"], np.where(np.delete(a[:, 1], 5) > 0, 1, 2))
     assert np.abs(cols["cameras"][1] - whole[1]).max() < 1e-8
+
+
+def test_normals_are_open3d_s_and_a_view_direction_where_no_plane_is_spanned():
+    rng = np.random.default_rng(4)
+    u, v = rng.uniform(0, 20, 20_000), rng.uniform(0, 20, 20_000)  # dense: ~80 within 0.8 mm
+    p = np.column_stack([u, v, 0.5 * np.sin(u / 3) + 0.2 * v + rng.normal(0, 0.01, len(u))])
+    ours, deg = estimate_normals(p, 0.8)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.8, max_nn=100))
+    theirs = np.asarray(pcd.normals)
+    assert not deg.any()
+    assert np.abs(np.abs(np.sum(ours * theirs, axis=1)) - 1).max() < 1e-9
+    # far from everything: a point alone, a pair, a row of three (a line): no plane
+    lone = np.array([[500.0, 0, 0], [600.0, 0, 0], [600.2, 0, 0], [700, 0, 0], [700.2, 0.1, 0],
+                     [700.4, 0.2, 0]])
+    q = np.vstack([p, lone])
+    view = np.tile(rng.normal(size=3) * 10 + [0, 0, 100], (len(q), 1))
+    n, deg = estimate_normals(q, 0.8, view + q)
+    assert deg[-6:].all() and not deg[:-6].any()
+    assert np.allclose(n[-6], view[0] / np.linalg.norm(view[0]))  # alone: the view direction
+    for i, t in ((-5, [1.0, 0, 0]), (-3, [2.0, 1, 0])):  # a line: the view direction across it
+        t = np.array(t) / np.linalg.norm(t)
+        v = view[0] - (view[0] @ t) * t
+        assert np.allclose(n[i], v / np.linalg.norm(v))

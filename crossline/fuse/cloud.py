@@ -64,6 +64,7 @@ __all__ = [
     "camera_centres",
     "estimate_normals",
     "fuse_cloud",
+    "fuse_columns",
     "make_mesh",
     "orient_normals",
     "read_ply",
@@ -101,7 +102,7 @@ class FusedCloud:
 
 
 def estimate_normals(
-    points: np.ndarray, radius: float, viewpoints: np.ndarray | None = None
+    points: np.ndarray, radius: float, viewpoints: np.ndarray | None = None, *, threads: int = 1,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals (N, 3) from the covariance of each point's neighbours within ``radius``.
 
@@ -117,13 +118,13 @@ def estimate_normals(
     for s in slabs(points, float(radius)):
         views = None if viewpoints is None else viewpoints[s.core]
         normals[s.core], degenerate[s.core] = _slab_normals(points[s.reach], s.start, s.stop,
-                                                            radius, views)
+                                                            radius, views, threads)
     return normals, degenerate
 
 
 def _normals_towards_camera(
     points: np.ndarray, radius: float, frames: np.ndarray, centres: np.ndarray,
-    point_frame: np.ndarray,
+    point_frame: np.ndarray, threads: int = 1,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Normals (N, 3) float32 facing the camera of each point's frame (``centres`` (F, 3) of
     the sorted ``frames``), and the fallback mask: :func:`estimate_normals` then
@@ -132,7 +133,7 @@ def _normals_towards_camera(
     degenerate = np.zeros(len(points), dtype=bool)
     for s in slabs(points, float(radius)):
         views = centres[np.searchsorted(frames, point_frame[s.core])]
-        n, deg = _slab_normals(points[s.reach], s.start, s.stop, radius, views)
+        n, deg = _slab_normals(points[s.reach], s.start, s.stop, radius, views, threads)
         normals[s.core] = orient_normals(points[s.core], n, views)
         degenerate[s.core] = deg
     return normals, degenerate
@@ -172,6 +173,21 @@ def fuse_cloud(
     frame: np.ndarray,
     points_cam: np.ndarray | None = None,
     *,
+    widths: np.ndarray | None = None,
+    cameras: tuple[np.ndarray, np.ndarray] | None = None,
+    **options: Any,
+) -> FusedCloud:
+    """Optional pose refinement, statistical outlier removal, optional voxel down-sampling
+    (per laser), oriented normals: :func:`fuse_columns` on these arrays (its options)."""
+    cols = {"xyz": points, "laser": laser, "frame": frame, "points_cam": points_cam,
+            "width": widths, "cameras": cameras}
+    del points, laser, frame, points_cam, widths, cameras
+    return fuse_columns(cols, **options)
+
+
+def fuse_columns(
+    cols: dict[str, Any],
+    *,
     neighbours: int = 20,
     std_ratio: float = 3.0,
     voxel_mm: float = 0.0,
@@ -180,32 +196,36 @@ def fuse_cloud(
     frame_table: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     crossing_half_mm: float = HALF_MM,
     crossing_min_angle_deg: float = MIN_ANGLE_DEG,
-    widths: np.ndarray | None = None,
     crossing_max_width_ratio: float = MAX_WIDTH_RATIO,
     threads: int = 1,
-    cameras: tuple[np.ndarray, np.ndarray] | None = None,
     arm_draws: int = 0,
     arm_prior: ArmPrior | None = None,
 ) -> FusedCloud:
     """Optional pose refinement, statistical outlier removal, optional voxel down-sampling
-    (per laser), oriented normals.
+    (per laser), oriented normals, of the columns ``cols`` (popped: the dict's arrays are let
+    go as soon as they are used, which a long scan's memory needs: an array passed as an
+    argument stays referenced by the caller for the whole call).
 
-    ``laser`` holds codes (1 = A, 2 = B) or labels ("A"/"B"); ``points_cam`` (N, 3), the same
-    points in the camera frame, orients the normals towards the camera. With
+    ``cols["xyz"]`` (N, 3) mm, ``cols["laser"]`` codes (1 = A, 2 = B) or labels ("A"/"B"),
+    ``cols["frame"]`` (N,); optional: ``cols["points_cam"]`` (N, 3), the same points in the
+    camera frame, orients the normals towards the camera. With
     ``refine_prior`` (and ``points_cam``, which gives each frame's camera centre) every
     frame's pose is refined first (:func:`crossline.scan.refine.refine_frames`); ``frame_table``
     = (frame numbers, times in s, reported flange positions (M, 3)) from the scan's
     frames.csv gives the prior its time correlation and the rotations their centre;
     ``crossing_half_mm`` and ``crossing_min_angle_deg`` are the refinement's stripe length
     fitted either side of a crossing and the smallest crossing angle it uses; with
-    ``widths`` (N,), each centre's column cut in px, centres cut over
+    ``cols["width"]`` (N,), each centre's column cut in px, centres cut over
     ``crossing_max_width_ratio`` x their laser's median make no crossings
-    (:func:`crossline.scan.refine.usable_centres`). ``cameras`` = (sorted frames, camera
-    centres (F, 3) in the base frame, e.g. from :class:`FrameMoments`) stands in for
+    (:func:`crossline.scan.refine.usable_centres`). ``cols["cameras"]`` = (sorted frames,
+    camera centres (F, 3) in the base frame, e.g. from :class:`FrameMoments`) stands in for
     ``points_cam`` where the scan is too long to hold those. ``arm_draws`` > 0 draws the arm's
     pose errors left in the cloud (``FusedCloud.arm``): from the refinement's posterior, or
     where the poses are not refined from ``arm_prior`` (default ``refine_prior``).
     """
+    points, laser, frame = cols.pop("xyz"), cols.pop("laser"), cols.pop("frame")
+    points_cam, widths = cols.pop("points_cam", None), cols.pop("width", None)
+    cameras = cols.pop("cameras", None)
     p = np.ascontiguousarray(points, dtype=np.float64)
     lab = np.asarray(laser)
     if lab.dtype.kind in "OUS":
@@ -267,9 +287,10 @@ def fuse_cloud(
 
     del fr, p
     if cameras is not None:
-        normals, degenerate = _normals_towards_camera(vp, normal_radius_mm, *cameras, vfr)
+        normals, degenerate = _normals_towards_camera(vp, normal_radius_mm, *cameras, vfr,
+                                                      threads)
     else:
-        normals, degenerate = estimate_normals(vp, normal_radius_mm)
+        normals, degenerate = estimate_normals(vp, normal_radius_mm, threads=threads)
         normals = orient_normals(vp, normals, None).astype(np.float32)
     stats["normals_oriented_to"] = "camera" if cameras is not None else "dominant direction"
     stats["normals_from_view"] = int(degenerate.sum())
@@ -370,14 +391,14 @@ def run_fuse(
         _same_scan(points, Path(frames), len(table[0]))
         _frames_in_table(points, Path(frames), cols["frame"], table[0])
     n_non_finite = int(cols["non_finite"])
-    # popped, so that fuse_cloud holds the only reference and can let each array go
-    cloud = fuse_cloud(
-        cols.pop("xyz"), cols.pop("laser"), cols.pop("frame"), cameras=cols.pop("cameras", None),
-        neighbours=neighbours, std_ratio=std_ratio, voxel_mm=voxel_mm,
+    # the dict handed over, so that fuse_columns holds the only reference to each array and
+    # can let it go (arguments stay referenced by the calling frame until the call returns)
+    cloud = fuse_columns(
+        cols, neighbours=neighbours, std_ratio=std_ratio, voxel_mm=voxel_mm,
         normal_radius_mm=normal_radius_mm, refine_prior=prior if refine_poses else None,
         frame_table=table, arm_draws=arm_draws, arm_prior=prior,
         crossing_half_mm=crossing_half_mm, crossing_min_angle_deg=crossing_min_angle_deg,
-        widths=cols.pop("width", None), crossing_max_width_ratio=crossing_max_width_ratio,
+        crossing_max_width_ratio=crossing_max_width_ratio,
         threads=threads,
     )
     cloud.stats["n_non_finite"] = n_non_finite

@@ -137,6 +137,8 @@ def refine_frames(
     frames = np.unique(frame) if frames is None else np.asarray(frames, dtype=np.int64)
     F = len(frames)
     fpos = np.searchsorted(frames, frame)
+    if len(frame) < 2**31:
+        fpos = fpos.astype(np.int32)  # an index per point, held to the end: 4 B a point less
     if F == 0 or (fpos >= F).any() or (frames[np.clip(fpos, 0, F - 1)] != frame).any():
         raise ValueError("every point's frame must be one of `frames`")
     if times is not None and (len(times) != F or np.any(np.diff(np.asarray(times, float)) <= 0)):
@@ -164,7 +166,11 @@ def refine_frames(
     posterior = info.pop("posterior", None)
     C = correction_transforms(e[:, :3], e[:, 3:], org)
     out = transform_points(C, p, fpos)
-    shift2 = np.sum((out - p) ** 2, axis=1)
+    # a block of rows at a time: (out - p) ** 2 of a long scan would be two more copies of it
+    shift2 = np.empty(len(p))
+    for r0 in range(0, len(p), 1 << 20):
+        d = out[r0:r0 + (1 << 20)] - p[r0:r0 + (1 << 20)]
+        shift2[r0:r0 + len(d)] = np.einsum("ij,ij->i", d, d)
     cnt = np.bincount(fpos, minlength=F)
     frame_rms = np.sqrt(np.bincount(fpos, shift2, F) / np.maximum(cnt, 1))
     seen = np.zeros(F, bool)
