@@ -189,7 +189,7 @@ def _plane_gradient_px(P, N, n_plane, cam: Camera) -> np.ndarray:
     """|grad f| (mm per px) of the plane distance f seen across the image on a surface.
 
     A pixel step moves the ray by (1/fx, 0, 0) (or (0, 1/fy, 0)) in normalised coordinates;
-    the hit point moves within the tangent plane: dP = z (dr - N (N . dr) / (N . r)).
+    the hit point moves within the tangent plane: dP = z (dr - r (N . dr) / (N . r)).
     Distortion changes the local scale by a few per cent; callers add margin.
     """
     r = P / P[:, 2:3]
@@ -200,7 +200,7 @@ def _plane_gradient_px(P, N, n_plane, cam: Camera) -> np.ndarray:
     for axis, f in ((0, cam.fx), (1, cam.fy)):
         e = np.zeros(3)
         e[axis] = 1.0 / f
-        dP = z[:, None] * (e[None, :] - N * (dot3(N, e) / Nr)[:, None])
+        dP = z[:, None] * (e[None, :] - r * (dot3(N, e) / Nr)[:, None])
         g.append(dot3(dP, n_plane))
     return np.hypot(g[0], g[1])
 
