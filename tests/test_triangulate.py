@@ -204,7 +204,8 @@ def test_ab_frames_with_one_laser_plane_are_an_error_and_write_nothing(tmp_path)
     st = tmp_path / "s.parquet"
     run_extract_stripes(tmp_path / "cap", "plate", st)
     planes = json.loads(Path(lj).read_text())
-    planes["B"] = planes["A"]  # parallel planes: no crossing line, no order
+    # parallel planes 5 mm apart: no crossing line, no order (one plane is refused as it is read)
+    planes["B"] = {**planes["A"], "d": planes["A"]["d"] + 5.0}
     Path(lj).write_text(json.dumps(planes))
     out = tmp_path / "p.parquet"
     with pytest.raises(StageError, match="scan plate: has AB frames but no A frame"):
