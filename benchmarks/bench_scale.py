@@ -220,6 +220,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--chunks", type=int, default=int(CONFIG["stripes"]["chunks"]),
                     help="extraction jobs per scan (default: config.yaml stripes.chunks)")
     ap.add_argument("--source-frames", type=int, default=480, help="rendered frames to reuse")
+    ap.add_argument("--pattern", default=None,
+                    help="laser pattern of the rendered frames (e.g. AB: both lines in every "
+                         "frame, about twice the points; default the rig's)")
     ap.add_argument("--stages", default=",".join(STAGES))
     ap.add_argument("--budget-s", type=float, default=float("inf"),
                     help="skip a size whose predicted time exceeds the time left")
@@ -232,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
         plot(saved["results"], RESULTS / f"scale{a.tag}.png")
         return 0
     t_start = time.perf_counter()
-    src = sensor_capture(a.source_frames)
+    src = sensor_capture(a.source_frames, pattern=a.pattern)
     stages = tuple(x for x in a.stages.split(",") if x)
     results: list[dict] = []
     skipped: list[int] = []

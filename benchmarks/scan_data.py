@@ -48,16 +48,19 @@ def sensor_preset():
                                ambient_scan_e=AMBIENT_SCAN_E)
 
 
-def sensor_capture(frames: int = 240, seed: int = 7) -> Path:
-    """A quick capture of the noisy-sensor rig with its plate scan of ``frames`` frames (cached)."""
+def sensor_capture(frames: int = 240, seed: int = 7, pattern: str | None = None) -> Path:
+    """A quick capture of the noisy-sensor rig with its plate scan of ``frames`` frames (cached);
+    ``pattern`` (e.g. "AB": both lines in every frame) replaces the rig's laser pattern."""
     from crossline.sim import simulate
 
-    out = CACHE / f"sensor-{SCAN}-{frames}-s{seed}"
+    tag = "" if pattern is None else "-" + pattern.replace(",", "")
+    out = CACHE / f"sensor-{SCAN}-{frames}-s{seed}{tag}"
     if (out / "rig.yaml").is_file() and (out / "truth.json").is_file():
         return out
     shutil.rmtree(out, ignore_errors=True)
     simulate(out, preset=sensor_preset(), seed=seed, quick=True, frames=frames, scans=[SCAN],
-             force=True, threads=2, progress=False)
+             force=True, threads=2, progress=False,
+             **({} if pattern is None else {"pattern": pattern.split(",")}))
     return out
 
 

@@ -114,8 +114,8 @@ def read_ply(path: str | Path) -> dict[str, np.ndarray]:
         names = [f for f, _ in fields]
         normals = all(k in names for k in ("nx", "ny", "nz"))
         out: dict[str, np.ndarray] = {"points": np.empty((n, 3))}
-        if normals:
-            out["normals"] = np.empty((n, 3))
+        if normals:  # as the file stores them (float32 as fuse writes them): 12 B a point less
+            out["normals"] = np.empty((n, 3), dtype=np.result_type(dt["nx"], np.float32))
         rest = [k for k in names if k not in ("x", "y", "z", "nx", "ny", "nz")]
         for k in rest:
             out[k] = np.empty(n, dtype=dt[k])

@@ -38,7 +38,7 @@ def _up_vector(cloud: dict[str, np.ndarray]) -> np.ndarray | None:
     n = cloud.get("normals")
     if n is None or len(n) == 0:
         return None
-    m = np.asarray(n, dtype=np.float64).mean(0)
+    m = np.asarray(n).mean(0, dtype=np.float64)
     norm = np.linalg.norm(m)
     return m / norm if norm > 0.1 else None
 
