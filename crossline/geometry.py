@@ -226,7 +226,10 @@ def plane_covariance(
 def plane_distance(points: np.ndarray, normal: np.ndarray, d: float) -> np.ndarray:
     """Signed distances (N,) of points (N, 3) to the plane ``n · p + d = 0``."""
     n = np.asarray(normal, dtype=np.float64)
-    return np.asarray(points, dtype=np.float64) @ n / np.linalg.norm(n) + d / np.linalg.norm(n)
+    r = np.asarray(points, dtype=np.float64) @ n
+    r /= np.linalg.norm(n)  # in place: a long scan's distances are 8 B a point each
+    r += d / np.linalg.norm(n)
+    return r
 
 
 def plane_line_intersection(

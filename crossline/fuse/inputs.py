@@ -122,14 +122,11 @@ def _same_scan(points: Path, frames: Path, n_frames: int) -> None:
 def _frames_in_table(points: Path, frames: Path, point_frames: np.ndarray,
                      table_frames: np.ndarray) -> None:
     """Raise a StageError naming ``frames`` when a frame of the points is not one of its rows."""
-    f = np.asarray(point_frames, dtype=np.int64)
-    if len(f) == 0:
+    from crossline.io.columns import frame_counts
+
+    if len(point_frames) == 0:
         return
-    lo, hi = int(f.min()), int(f.max())
-    if lo >= 0 and hi < 100_000_000:  # a frame-number histogram: O(N), no sort of the points
-        seen = np.flatnonzero(np.bincount(f, minlength=hi + 1))
-    else:
-        seen = np.unique(f)
+    seen, _ = frame_counts(point_frames)
     missing = np.setdiff1d(seen, np.asarray(table_frames, dtype=np.int64))
     if len(missing):
         raise StageError(f"{frames}: frame(s) {missing[:5].tolist()} of {points.name} "

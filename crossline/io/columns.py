@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["LASER_CODES", "column_type_problems", "laser_codes_of", "read_columns"]
+__all__ = ["LASER_CODES", "column_type_problems", "frame_counts", "laser_codes_of",
+           "read_columns"]
 
 LASER_CODES = {"A": 1, "B": 2}  # 0: no laser, or one the rig does not have
 
@@ -23,6 +24,27 @@ LASER_CODES = {"A": 1, "B": 2}  # 0: no laser, or one the rig does not have
 # POINTS_SCHEMA, the extractor's STRIPES_SCHEMA); every other column read holds numbers
 WHOLE = ("frame", "flags")  # int64, uint8
 TEXT = ("laser", "lasers")  # string
+
+
+def frame_counts(frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct frame numbers (sorted) of a points column and how many points each has.
+
+    A histogram of the frame numbers where they are non-negative and not absurdly large: O(N)
+    and no copy of a long scan's column (``np.unique`` sorts a copy, 16 B a point at int64);
+    ``np.unique`` otherwise.
+    """
+    f = np.asarray(frame)
+    if f.dtype.kind not in "iu":
+        f = f.astype(np.int64)
+    if len(f) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    lo, hi = int(f.min()), int(f.max())
+    if lo >= 0 and hi < 100_000_000:
+        counts = np.bincount(f, minlength=hi + 1)
+        seen = np.flatnonzero(counts)
+        return seen, counts[seen]
+    seen, counts = np.unique(f, return_counts=True)
+    return seen.astype(np.int64), counts
 
 
 def _kind(name: str, t) -> tuple[str, bool]:

@@ -59,12 +59,14 @@ def write_ply(path: str | Path, cloud: FusedCloud) -> None:
             f.write(rows.tobytes())
 
 
-def read_ply(path: str | Path) -> dict[str, np.ndarray]:
+def read_ply(path: str | Path, *, normals: bool = True) -> dict[str, np.ndarray]:
     """Vertex properties of a binary little-endian PLY (such as ``write_ply``'s) by name.
 
     Returns ``{"points": (N, 3)}`` plus ``"normals"``, ``"laser"``, ``"frame"`` and any other
     property present (as 1-D arrays). Raises ValueError naming the file for other PLY flavours,
     a file that does not hold what its header declares, and non-finite coordinates or normals.
+    With ``normals=False`` the normals are checked but not kept: ``"normal_mean"`` (3,) stands
+    for them (a long scan's report needs no more, and they are 12 B a point).
     """
     path = Path(path)
     with open(path, "rb") as f:
@@ -112,10 +114,12 @@ def read_ply(path: str | Path) -> dict[str, np.ndarray]:
                              f"({n * dt.itemsize} bytes), the file holds {size} bytes after it: "
                              f"not the file its header describes")
         names = [f for f, _ in fields]
-        normals = all(k in names for k in ("nx", "ny", "nz"))
+        has_normals = all(k in names for k in ("nx", "ny", "nz"))
+        keep_normals = has_normals and normals
         out: dict[str, np.ndarray] = {"points": np.empty((n, 3))}
-        if normals:  # as the file stores them (float32 as fuse writes them): 12 B a point less
+        if keep_normals:  # as the file stores them (float32 as fuse writes them): 12 B a point less
             out["normals"] = np.empty((n, 3), dtype=np.result_type(dt["nx"], np.float32))
+        total = np.zeros(3)
         rest = [k for k in names if k not in ("x", "y", "z", "nx", "ny", "nz")]
         for k in rest:
             out[k] = np.empty(n, dtype=dt[k])
@@ -126,11 +130,21 @@ def read_ply(path: str | Path) -> dict[str, np.ndarray]:
             b = a + len(rows)
             for i, k in enumerate(("x", "y", "z")):
                 out["points"][a:b, i] = rows[k]
-            if normals:
+            if keep_normals:
                 for i, k in enumerate(("nx", "ny", "nz")):
                     out["normals"][a:b, i] = rows[k]
+            elif has_normals:
+                blk = np.column_stack([rows[k] for k in ("nx", "ny", "nz")]).astype(np.float64)
+                bad = np.flatnonzero(~np.isfinite(blk).all(axis=1))
+                if len(bad):
+                    raise ValueError(f"{path}: vertex {a + bad[0]} (of {n}) has non-finite normal "
+                                     f"{blk[bad[0]].tolist()}; a fused cloud holds finite values "
+                                     "only")
+                total += blk.sum(axis=0)
             for k in rest:
                 out[k][a:b] = rows[k]
+        if has_normals and not normals:
+            out["normal_mean"] = total / max(n, 1)
     for key, what in (("points", "coordinates"), ("normals", "normal")):
         bad = np.flatnonzero(~np.isfinite(out[key]).all(axis=1)) if key in out else []
         if len(bad):  # the fuse stage writes finite values only: a damaged or foreign file

@@ -31,6 +31,9 @@ def _subsample(n: int, size: int, rng: np.random.Generator) -> np.ndarray:
     return np.sort(rng.choice(n, size=size, replace=False))
 
 
+_BLOCK = 1 << 20  # rows at a time of a scan's points
+
+
 def fit_plane(points: np.ndarray) -> tuple[np.ndarray, float]:
     """Total-least-squares plane ``n · p + d = 0`` of points (N, 3), oriented so that ``d <= 0``.
 
@@ -43,8 +46,11 @@ def fit_plane(points: np.ndarray) -> tuple[np.ndarray, float]:
     if p.ndim != 2 or p.shape[1] != 3 or len(p) < 3:
         raise ValueError(f"fit_plane needs an (N, 3) array with N >= 3, got shape {p.shape}")
     c = p.mean(0)
-    q = p - c
-    _, V = np.linalg.eigh(q.T @ q)
+    S = np.zeros((3, 3))
+    for a in range(0, len(p), _BLOCK):  # no centred copy of a long scan's points at once
+        q = p[a:a + _BLOCK] - c
+        S += q.T @ q
+    _, V = np.linalg.eigh(S)
     n = V[:, 0]
     d = -float(n @ c)
     if d > 0:

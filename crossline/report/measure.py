@@ -36,9 +36,12 @@ log = logging.getLogger("crossline.report.accuracy")
 
 def _up_vector(cloud: dict[str, np.ndarray]) -> np.ndarray | None:
     n = cloud.get("normals")
-    if n is None or len(n) == 0:
+    if n is not None and len(n):
+        m = np.asarray(n).mean(0, dtype=np.float64)
+    elif cloud.get("normal_mean") is not None and len(cloud["points"]):
+        m = np.asarray(cloud["normal_mean"], dtype=np.float64)  # read_ply(normals=False)
+    else:
         return None
-    m = np.asarray(n).mean(0, dtype=np.float64)
     norm = np.linalg.norm(m)
     return m / norm if norm > 0.1 else None
 

@@ -125,14 +125,16 @@ def points_per_frame(
     states = np.asarray(states).astype(str)
     order = np.argsort(frame_ids, kind="stable")
     frame_ids, states = frame_ids[order], states[order]
-    point_frames = np.asarray(point_frames, dtype=np.int64)
-    if len(frame_ids):
-        pos = np.clip(np.searchsorted(frame_ids, point_frames), 0, len(frame_ids) - 1)
-        known = frame_ids[pos] == point_frames
-    else:
-        pos = np.zeros(len(point_frames), dtype=np.int64)
-        known = np.zeros(len(point_frames), dtype=bool)
-    counts = np.bincount(pos[known], minlength=len(frame_ids)).astype(np.int64)
+    from crossline.io.columns import frame_counts
+
+    # per distinct frame of the points, then onto the table's frames: no per-point temporaries
+    seen, n_seen = frame_counts(point_frames)
+    counts = np.zeros(len(frame_ids), dtype=np.int64)
+    known = np.zeros(len(seen), dtype=bool)
+    if len(frame_ids) and len(seen):
+        pos = np.clip(np.searchsorted(frame_ids, seen), 0, len(frame_ids) - 1)
+        known = frame_ids[pos] == seen
+        np.add.at(counts, pos[known], n_seen[known])
     by_state = {}
     for s in ("A", "B", "AB", "off"):
         m = states == s
@@ -144,7 +146,7 @@ def points_per_frame(
     out: dict[str, Any] = {
         "frames": n,
         "points": int(counts.sum()),
-        "points_outside_frames": int((~known).sum()),
+        "points_outside_frames": int(n_seen[~known].sum()),
         "points_per_frame": float(counts.sum() / n) if n else None,
         "by_state": by_state,
         "points_per_single_laser_frame": float(counts[single].mean()) if single.any() else None,
@@ -188,6 +190,7 @@ def _same_scan_arm(arm_path: Path, arm: Any, frames: Path, cloud: dict | None,
     flange, as fuse writes them with a frames table), or a frame of the cloud (``cloud_name``)
     without draws."""
     from crossline.io.capture import read_frames_table
+    from crossline.io.columns import frame_counts
 
     table = read_frames_table(frames)
     order = np.argsort(table.frames, kind="stable")
@@ -211,7 +214,7 @@ def _same_scan_arm(arm_path: Path, arm: Any, frames: Path, cloud: dict | None,
                 f"{len(arm.frames)} frames differ, by up to {off.max():.3g} mm): the arm draws of "
                 "another scan; fuse the scan again")
     if cloud is not None and "frame" in cloud and len(cloud["frame"]):
-        seen = np.unique(np.asarray(cloud["frame"], dtype=np.int64))
+        seen, _ = frame_counts(cloud["frame"])
         lacking = np.setdiff1d(seen, arm.frames)
         if len(lacking):
             raise StageError(f"{arm_path}: no draws for frame(s) {lacking[:5].tolist()} of "
@@ -247,7 +250,11 @@ def _load_scan(
         _same_scan_points(name, pq, fcsv, None if sd.frame_ids is None else len(sd.frame_ids))
         try:
             cols = read_columns(pq, ["frame", "laser"])
-            sd.point_frames = cols["frame"].astype(np.int64, copy=False)
+            pf = cols.pop("frame")
+            # a frame number a point, held to the end: 4 B a point where 8 were read
+            sd.point_frames = pf.astype(np.int32) \
+                if len(pf) and 0 <= pf.min() and pf.max() < 2**31 else pf
+            del pf
             sd.point_lasers = cols["laser"]
         except Exception as exc:  # pyarrow raises several types for broken files
             log.warning("%s: unreadable (%s)", pq, exc)
@@ -261,7 +268,8 @@ def _load_scan(
     if ply.is_file():
         files.append(("processed", f"{name}.ply", ply))
         try:
-            sd.cloud = read_ply(ply)
+            # the report reads the normals' mean only (the up vector): 12 B a point less
+            sd.cloud = read_ply(ply, normals=False)
         except (ValueError, KeyError, OSError) as exc:
             # not the points in its stead: their figures (unfused, unrefined) would stand in the
             # report as the cloud's, as if all were well

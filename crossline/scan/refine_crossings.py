@@ -161,6 +161,21 @@ def _closest(ca: np.ndarray, cb: np.ndarray, iters: int = 5):
     return s, r, xa, xb, ta, tb
 
 
+def _closest_per_cell(x: np.ndarray, pair: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Indices of the closest candidate (least ``dist``, the first on a tie) of each stripe
+    ``pair`` in each 2 mm cell of its A point ``x`` (N, 3), ordered by pair, then cell."""
+    if len(x) == 0:
+        return np.zeros(0, np.int64)
+    cell = np.floor(x / 2.0).astype(np.int64)
+    cell -= cell.min(0)
+    dims = cell.max(0) + 1
+    ck = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+    o = np.lexsort((dist, ck, pair))
+    first = np.ones(len(o), bool)
+    first[1:] = (pair[o][1:] != pair[o][:-1]) | (ck[o][1:] != ck[o][:-1])
+    return o[first]
+
+
 def find_crossings(
     frame_pos: np.ndarray,
     laser: np.ndarray,
@@ -238,27 +253,26 @@ def find_crossings(
     # every other A point is enough to seed: the crossing itself is found by the curve fits
     a = a[::2]
     ia_, ib_, dd_ = [], [], []
+    n_sid = int(sid.max()) + 1
     for c0 in range(0, len(a), _QUERY_ROWS):  # in blocks: k distances a row are 64 B
         ac = a[c0:c0 + _QUERY_ROWS]
         dist, jj = tree.query(po[ac], k=4, distance_upper_bound=radius_mm, workers=threads)
         hit = np.isfinite(dist)
-        ia_.append(np.broadcast_to(ac[:, None], dist.shape)[hit].astype(np.int64))
-        ib_.append(b[jj[hit]].astype(np.int64))
-        dd_.append(dist[hit])
+        ia, ib = np.broadcast_to(ac[:, None], dist.shape)[hit].astype(np.int64), b[jj[hit]]
+        # the block's seeds at once (below): on a slow sweep nearly every A point lies near a
+        # B stripe of some frame, and the raw pairs of a 70 M-point scan held GBs
+        keep = _closest_per_cell(po[ia], sid[ia].astype(np.int64) * n_sid + sid[ib], dist[hit])
+        ia_.append(ia[keep])
+        ib_.append(ib[keep].astype(np.int64))
+        dd_.append(dist[hit][keep])
     del tree
     ia, ib, dd = np.concatenate(ia_), np.concatenate(ib_), np.concatenate(dd_)
     if len(ia) == 0:
         return empty
-    # one seed per stripe pair and 2 mm cell: the closest A-B point pair there
-    cell = np.floor(po[ia] / 2.0).astype(np.int64)
-    cell -= cell.min(0)
-    dims = cell.max(0) + 1
-    ck = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
-    pair = sid[ia].astype(np.int64) * (sid.max() + 1) + sid[ib]
-    o = np.lexsort((dd, ck, pair))
-    first = np.ones(len(o), bool)
-    first[1:] = (pair[o][1:] != pair[o][:-1]) | (ck[o][1:] != ck[o][:-1])
-    ia, ib = ia[o[first]], ib[o[first]]
+    # one seed per stripe pair and 2 mm cell: the closest A-B point pair there (the blocks'
+    # seeds again: a pair and cell may span two blocks; ties go to the first, as in one pass)
+    keep = _closest_per_cell(po[ia], sid[ia].astype(np.int64) * n_sid + sid[ib], dd)
+    ia, ib = ia[keep], ib[keep]
     # window slots either side: the half-length in median point spacings, with room for
     # sparser stretches and for a second segment of the stripe interleaved in the order
     width = {code: int(np.clip(np.ceil(1.6 * half[code] / max(min(spacing, sp[code]), 1e-3)), 8, 200))
