@@ -23,6 +23,7 @@ from crossline.report.fitting import (
     MIN_POINTS,
     _orient,
     fit_plane,
+    masked_blocks,
     ransac_plane,
     ransac_sphere,
     robust_sigma,
@@ -76,14 +77,24 @@ class PlaneResult:
 
 
 def measure_plane(
-    points: np.ndarray, *, band_mm: float = 0.05, up: np.ndarray | None = None
+    points: np.ndarray, *, band_mm: float = 0.05, up: np.ndarray | None = None,
+    mask: np.ndarray | None = None,
 ) -> PlaneResult:
-    """Least-squares plane of every point (the paper's Fig. 16) and the distances to it."""
+    """Least-squares plane of every point (the paper's Fig. 16; those of ``mask`` where given:
+    no copy of them) and the distances to it."""
     p = np.asarray(points, dtype=np.float64)
-    if len(p) < MIN_POINTS:
-        raise ValueError(f"measure_plane needs at least {MIN_POINTS} points, got {len(p)}")
-    n, d = _orient(*fit_plane(p), up)
-    return PlaneResult(n, d, plane_distance(p, n, d), band_mm)
+    count = len(p) if mask is None else int(np.count_nonzero(mask))
+    if count < MIN_POINTS:
+        raise ValueError(f"measure_plane needs at least {MIN_POINTS} points, got {count}")
+    n, d = _orient(*fit_plane(p, mask), up)
+    if mask is None:
+        return PlaneResult(n, d, plane_distance(p, n, d), band_mm)
+    r = np.empty(count)
+    a = 0
+    for q in masked_blocks(p, np.asarray(mask, dtype=bool)):
+        r[a:a + len(q)] = plane_distance(q, n, d)
+        a += len(q)
+    return PlaneResult(n, d, r, band_mm)
 
 
 def plane_offset(

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["MIN_POINTS", "fit_plane", "laser_codes", "ransac_plane", "ransac_sphere", "robust_sigma"]
+__all__ = ["MIN_POINTS", "fit_plane", "laser_codes", "masked_blocks", "ransac_plane", "ransac_sphere",
+           "robust_sigma"]
 
 MIN_POINTS = 20  # fewest points for a figure to be reported at all
 
@@ -34,21 +35,29 @@ def _subsample(n: int, size: int, rng: np.random.Generator) -> np.ndarray:
 _BLOCK = 1 << 20  # rows at a time of a scan's points
 
 
-def fit_plane(points: np.ndarray) -> tuple[np.ndarray, float]:
-    """Total-least-squares plane ``n · p + d = 0`` of points (N, 3), oriented so that ``d <= 0``.
+def fit_plane(points: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """Total-least-squares plane ``n · p + d = 0`` of points (N, 3) (those of ``mask`` (N,)
+    where given), oriented so that ``d <= 0``.
 
     The same plane as ``crossline.geometry.fit_plane`` (which takes the SVD of the whole
     N × 3 matrix), from the 3 × 3 scatter matrix of the centred points instead: ten times
     quicker on the half-million points of a scan, and as exact for clouds of mm size
-    (tests compare the two).
+    (tests compare the two). A block of rows at a time: no copy of a long scan's points.
     """
     p = np.asarray(points, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3 or len(p) < 3:
+    if p.ndim != 2 or p.shape[1] != 3:
         raise ValueError(f"fit_plane needs an (N, 3) array with N >= 3, got shape {p.shape}")
-    c = p.mean(0)
+    m = None if mask is None else np.asarray(mask, dtype=bool)
+    count = len(p) if m is None else int(m.sum())
+    if count < 3:
+        raise ValueError(f"fit_plane needs an (N, 3) array with N >= 3, got {count} points")
+    total = np.zeros(3)
+    for q in masked_blocks(p, m):
+        total += q.sum(axis=0)
+    c = total / count
     S = np.zeros((3, 3))
-    for a in range(0, len(p), _BLOCK):  # no centred copy of a long scan's points at once
-        q = p[a:a + _BLOCK] - c
+    for q in masked_blocks(p, m):
+        q = q - c
         S += q.T @ q
     _, V = np.linalg.eigh(S)
     n = V[:, 0]
@@ -56,6 +65,13 @@ def fit_plane(points: np.ndarray) -> tuple[np.ndarray, float]:
     if d > 0:
         n, d = -n, -d
     return n, d
+
+
+def masked_blocks(points: np.ndarray, mask: np.ndarray | None, block: int = _BLOCK):
+    """The rows of ``points`` (those of ``mask`` where given), a block at a time."""
+    for a in range(0, len(points), block):
+        q = points[a:a + block]
+        yield q if mask is None else q[mask[a:a + block]]
 
 
 def laser_codes(laser: np.ndarray) -> np.ndarray:

@@ -168,7 +168,7 @@ def compare_lasers(
             tm = gauge.top_mask & (lab == code[L])
             if not surface_ok(pm, "plate") or tm.sum() < MIN_POINTS:
                 return None
-            n, d = fit_plane(p[pm])
+            n, d = fit_plane(p, pm)
             if float(n @ gauge.plate_normal) < 0:
                 n, d = -n, -d
             planes[L] = (n, d)
@@ -191,7 +191,7 @@ def compare_lasers(
             m = lab == code[L]
             if not surface_ok(m, "plane"):
                 return None
-            res = measure_plane(p[m], band_mm=band_mm, up=plane.normal)
+            res = measure_plane(p, band_mm=band_mm, up=plane.normal, mask=m)
             planes[L] = (res.normal, res.d)
             f = res.figures()
             out[L] = {k: f[k] for k in ("n", "rms_mm", "share_within_band", "flatness_mm",
