@@ -60,15 +60,20 @@ class PlaneResult:
         """The plain numbers: n, RMS, share within the band, flatness (full and 95 %)."""
         r = self.distances
         lo, hi = np.percentile(r, [2.5, 97.5])
+        # sums rather than arrays of deviations, squares and magnitudes: a long scan's
+        # distances are 8 B a point, and each such temporary as much again
+        n, mean, ss = r.size, float(r.mean()), float(r @ r)
+        var = max(ss - n * mean * mean, 0.0) / (n - 1) if n > 1 else 0.0
+        within = np.count_nonzero((r >= -self.band_mm) & (r <= self.band_mm))
         return {
-            "n": int(r.size),
+            "n": int(n),
             "normal": self.normal.tolist(),
             "d_mm": self.d,
-            "mean_mm": float(r.mean()),
-            "std_mm": float(r.std(ddof=1)) if r.size > 1 else 0.0,
-            "rms_mm": float(np.sqrt(np.mean(r**2))),
+            "mean_mm": mean,
+            "std_mm": float(np.sqrt(var)),
+            "rms_mm": float(np.sqrt(ss / n)),
             "band_mm": self.band_mm,
-            "share_within_band": float(np.mean(np.abs(r) <= self.band_mm)),
+            "share_within_band": float(within / n),
             "flatness_mm": float(r.max() - r.min()),
             "flatness_95_mm": float(hi - lo),
             "min_mm": float(r.min()),

@@ -80,7 +80,7 @@ def laser_codes(laser: np.ndarray) -> np.ndarray:
     if lab.dtype.kind in "OUS":
         s = lab.astype(str)
         return np.select([s == "A", s == "B"], [1, 2], 0).astype(np.uint8)
-    return lab.astype(np.uint8)
+    return lab.astype(np.uint8, copy=False)
 
 
 def _orient(n: np.ndarray, d: float, up: np.ndarray | None) -> tuple[np.ndarray, float]:

@@ -27,6 +27,7 @@ from crossline.report.scan_truth import (
     _speckle_limit,
     uncertainty_coverage,
 )
+from crossline.report.top_view import top_view
 
 __all__ = ["ONE_LINE_NOTE"]
 
@@ -187,14 +188,14 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
         out["lasers"] = list(lasers)
     counts: dict[str, Any] = {}
     if sd.point_frames is not None:
-        counts["points"] = len(sd.point_frames)
-        nl = np.bincount(sd.point_lasers, minlength=3)
+        counts["points"] = int(sd.point_frames[1].sum())
+        nl = sd.point_lasers
         counts["points_by_laser"] = {L: int(nl[1 + i]) for i, L in enumerate(("A", "B"))
                                      if L in lasers or nl[1 + i]}
         if nl[0]:
             counts["points_by_laser"]["other"] = int(nl[0])
     if sd.frame_ids is not None and sd.point_frames is not None:
-        ppf = points_per_frame(sd.frame_ids, sd.states, sd.point_frames)
+        ppf = points_per_frame(sd.frame_ids, sd.states, None, counts_of=sd.point_frames)
         sd.plots["frame_counts"] = ppf.pop("_counts")
         sd.plots["frame_states"] = np.asarray(sd.states)[np.argsort(sd.frame_ids, kind="stable")]
         counts.update(ppf)
@@ -223,7 +224,8 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
         return out
 
     P = sd.cloud["points"]
-    labels = np.asarray(sd.cloud.get("laser", np.zeros(len(P), np.uint8))).astype(np.uint8)
+    labels = np.asarray(sd.cloud.get("laser", np.zeros(len(P), np.uint8))).astype(np.uint8,
+                                                                                 copy=False)
     out["cloud_points"] = len(P)
     up = _up_vector(sd.cloud)
     # nothing after the up vector reads the normals: 24 B a point less at the figures' peak
@@ -371,20 +373,10 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
     else:
         n, d = (up if up is not None else np.array([0.0, 0.0, 1.0])), 0.0
     B = _basis(n)
-    top = _project32(P, np.vstack([B[:2], n]), np.array([0.0, 0.0, d]))
-    if height_ref is None:
-        top[:, 2] -= np.percentile(top[:, 2], 0.5)
-    sd.plots["top"] = {"xy": top[:, :2], "h": top[:, 2]}
-    return out
-
-
-def _project32(P: np.ndarray, M: np.ndarray, offset: np.ndarray, block: int = 1 << 20) -> np.ndarray:
-    """``P @ M.T + offset`` as float32, a block of rows at a time: the top view is binned into
-    an image (float32 is µm at a metre), and a long scan's map arrays are held until the pages
-    are drawn, so neither they nor their float64 temporaries may cost a full copy each."""
-    out = np.empty((len(P), len(M)), dtype=np.float32)
-    for a in range(0, len(P), block):
-        out[a:a + block] = P[a:a + block] @ M.T + offset
+    # binned now, by blocks: a long scan's map arrays are not held until the pages are drawn;
+    # the freeform's deviation map (validation) needs the coordinates
+    sd.plots["top"] = top_view(P, np.vstack([B[:2], n]), np.array([0.0, 0.0, d]),
+                               from_low=height_ref is None, keep_xy=sd.artefact == "freeform")
     return out
 
 

@@ -252,25 +252,14 @@ def _textbox(ax: Any, lines: list[str], loc: str = "right") -> None:
             bbox={"boxstyle": "round,pad=0.4", "fc": "white", "ec": "#999999", "alpha": 0.9})
 
 
-def _binned_image(xy: np.ndarray, h: np.ndarray, max_bins: int = 320) -> tuple:
-    """Mean of h on a regular grid over xy: image (ny, nx) with NaN where empty, and extent."""
-    lo = xy.min(0)
-    hi = xy.max(0)
-    span = np.maximum(hi - lo, 1e-6)
-    # cells of about two points each on average (sparse stripes would print as dust)
-    cell = max(span.max() / max_bins, float(np.sqrt(span[0] * span[1] * 2.0 / max(len(xy), 1))))
-    nb = np.maximum(np.ceil(span / cell).astype(int), 1)
-    rng = [[lo[0], lo[0] + nb[0] * cell], [lo[1], lo[1] + nb[1] * cell]]
-    s, _, _ = np.histogram2d(xy[:, 0], xy[:, 1], bins=nb, range=rng, weights=h)
-    c, _, _ = np.histogram2d(xy[:, 0], xy[:, 1], bins=nb, range=rng)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        img = (s / c).T
-    return img, (rng[0][0], rng[0][1], rng[1][0], rng[1][1])
+def _map(page: Page, xy: np.ndarray | None, h: np.ndarray | None, label: str, title: str, *,
+         height_in: float = 3.3, cmap: str = "viridis", symmetric: bool = False,
+         image: tuple[np.ndarray, tuple] | None = None) -> None:
+    """A map of h over xy binned (:func:`crossline.report.top_view.binned_image`), or of a
+    binned ``image`` = (image, extent) already made."""
+    from crossline.report.top_view import binned_image
 
-
-def _map(page: Page, xy: np.ndarray, h: np.ndarray, label: str, title: str, *,
-         height_in: float = 3.3, cmap: str = "viridis", symmetric: bool = False) -> None:
-    img, extent = _binned_image(xy, h)
+    img, extent = image if image is not None else binned_image(xy, h)
     if symmetric:
         m = float(np.nanpercentile(np.abs(img), 99)) or 1e-6
         vmin, vmax = -m, m

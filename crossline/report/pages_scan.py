@@ -137,7 +137,8 @@ def page_scan(m: dict[str, Any], name: str, plots: dict[str, Any]) -> Figure:
     if top is not None:
         label = {"gauge_block": "height above the plate plane (mm)",
                  "plane": "distance to the fitted plane (mm)"}.get(art, "height (mm)")
-        _map(p, top["xy"], top["h"], label, "Top view of the fused cloud", height_in=2.6)
+        _map(p, None, None, label, "Top view of the fused cloud", height_in=2.6,
+             image=(top["image"], top["extent"]))
     hist = plots.get("hist")
     meas = s.get("measurement") or {}
     if hist is not None and meas:

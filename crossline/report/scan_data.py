@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from crossline.errors import StageError
+from crossline.io.columns import frame_counts
 
 __all__ = ["ScanData", "points_per_frame"]
 
@@ -98,7 +99,9 @@ class ScanData:
     nominal: dict[str, float]
     states: np.ndarray | None = None  # laser state per frame, in frame order
     frame_ids: np.ndarray | None = None
-    point_frames: np.ndarray | None = None  # frame of each triangulated point
+    # the triangulated points' distinct frames and their counts (crossline.io.columns.
+    # frame_counts), and their count per laser code (0, 1 = A, 2 = B): no per-point arrays
+    point_frames: tuple[np.ndarray, np.ndarray] | None = None
     point_lasers: np.ndarray | None = None
     cloud: dict[str, np.ndarray] | None = None  # points, normals, laser (codes), frame
     cloud_source: str = ""
@@ -113,7 +116,8 @@ class ScanData:
 
 
 def points_per_frame(
-    frame_ids: np.ndarray, states: np.ndarray, point_frames: np.ndarray
+    frame_ids: np.ndarray, states: np.ndarray, point_frames: np.ndarray,
+    counts_of: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """Points per frame, by laser state, and the gain of the cross-line over a single line.
 
@@ -125,10 +129,9 @@ def points_per_frame(
     states = np.asarray(states).astype(str)
     order = np.argsort(frame_ids, kind="stable")
     frame_ids, states = frame_ids[order], states[order]
-    from crossline.io.columns import frame_counts
-
     # per distinct frame of the points, then onto the table's frames: no per-point temporaries
-    seen, n_seen = frame_counts(point_frames)
+    # (``counts_of``: :func:`frame_counts` of the points' frames, made when they were read)
+    seen, n_seen = counts_of if counts_of is not None else frame_counts(point_frames)
     counts = np.zeros(len(frame_ids), dtype=np.int64)
     known = np.zeros(len(seen), dtype=bool)
     if len(frame_ids) and len(seen):
@@ -190,8 +193,6 @@ def _same_scan_arm(arm_path: Path, arm: Any, frames: Path, cloud: dict | None,
     flange, as fuse writes them with a frames table), or a frame of the cloud (``cloud_name``)
     without draws."""
     from crossline.io.capture import read_frames_table
-    from crossline.io.columns import frame_counts
-
     table = read_frames_table(frames)
     order = np.argsort(table.frames, kind="stable")
     ids = table.frames[order]
@@ -250,12 +251,8 @@ def _load_scan(
         _same_scan_points(name, pq, fcsv, None if sd.frame_ids is None else len(sd.frame_ids))
         try:
             cols = read_columns(pq, ["frame", "laser"])
-            pf = cols.pop("frame")
-            # a frame number a point, held to the end: 4 B a point where 8 were read
-            sd.point_frames = pf.astype(np.int32) \
-                if len(pf) and 0 <= pf.min() and pf.max() < 2**31 else pf
-            del pf
-            sd.point_lasers = cols["laser"]
+            sd.point_frames = frame_counts(cols.pop("frame"))
+            sd.point_lasers = np.bincount(cols.pop("laser"), minlength=3)
         except Exception as exc:  # pyarrow raises several types for broken files
             log.warning("%s: unreadable (%s)", pq, exc)
         else:
