@@ -249,6 +249,8 @@ def fuse_columns(
                                       "refinement needs stripes of both lasers to cross "
                                       "(arm poses used as reported)"}
         log.info("pose refinement skipped: %s", stats["refine"]["skipped"])
+    if len(p) < 2**31 and len(fr) and 0 <= fr.min() and fr.max() < 2**31:
+        fr = fr.astype(np.int32)  # what the cloud keeps; 4 B a point less from here on
     arm = None
     if refine_prior is not None and not lacking:
         mask = None if widths is None else usable_centres(lab, widths, crossing_max_width_ratio)
@@ -262,8 +264,6 @@ def fuse_columns(
                            frame_table, arm_draws, 0)
 
     widths = None
-    if len(p) < 2**31 and len(fr) and 0 <= fr.min() and fr.max() < 2**31:
-        fr = fr.astype(np.int32)  # what the cloud keeps; 4 B a point less from here on
     if neighbours > 0 and len(p) > neighbours:
         # Open3D's test, slab by slab (crossline.tiles): the same points kept, a bounded memory
         keep = statistical_inliers(p, int(neighbours), float(std_ratio), normal_radius_mm,

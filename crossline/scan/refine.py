@@ -132,7 +132,9 @@ def refine_frames(
     import time
 
     t0 = time.perf_counter()
-    frame = np.asarray(frame, dtype=np.int64)
+    frame = np.asarray(frame)
+    if frame.dtype.kind not in "iu":  # an int32 frame column stays one: no copy of it
+        frame = frame.astype(np.int64)
     p = np.asarray(points, dtype=np.float64)
     frames = np.unique(frame) if frames is None else np.asarray(frames, dtype=np.int64)
     F = len(frames)

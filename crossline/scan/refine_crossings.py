@@ -161,6 +161,32 @@ def _closest(ca: np.ndarray, cb: np.ndarray, iters: int = 5):
     return s, r, xa, xb, ta, tb
 
 
+class _Ordered:
+    """Points ``p[index]`` read on demand: ``o[i]`` is ``p[index[i]]`` for an index array ``i``."""
+
+    def __init__(self, p: np.ndarray, index: np.ndarray) -> None:
+        self.p, self.index = p, index
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def __getitem__(self, i: np.ndarray) -> np.ndarray:
+        return self.p[self.index[i]]
+
+    def steps(self, block: int = 1 << 20) -> np.ndarray:
+        """Distances (N - 1,) between neighbours in the order, a block at a time (the same
+        sums, in the same order, as over whole columns)."""
+        n = len(self.index)
+        out = np.empty(max(n - 1, 0))
+        for a in range(0, n - 1, block):
+            q = self.p[self.index[a:a + block + 1]]
+            d = np.diff(q[:, 0]) ** 2
+            for i in (1, 2):
+                d += np.diff(q[:, i]) ** 2
+            out[a:a + len(d)] = np.sqrt(d)
+        return out
+
+
 def _closest_per_cell(x: np.ndarray, pair: np.ndarray, dist: np.ndarray) -> np.ndarray:
     """Indices of the closest candidate (least ``dist``, the first on a tie) of each stripe
     ``pair`` in each 2 mm cell of its A point ``x`` (N, 3), ordered by pair, then cell."""
@@ -219,7 +245,8 @@ def find_crossings(
     order, sid = order.astype(itype), sid.astype(itype)
     fo, lo_ = fp[order].astype(itype), lab[order].astype(np.int8)
     del fp, lab
-    po = p[order if subset is None else subset[order]]
+    # the points in stripe order by index, not a reordered copy of them (4 B a point, not 24)
+    po = _Ordered(p, order if subset is None else subset[order])
     del order
     a = np.flatnonzero(lo_ == 1).astype(itype)
     b = np.flatnonzero(lo_ == 2).astype(itype)
@@ -228,10 +255,7 @@ def find_crossings(
     if len(a) < 8 or len(b) < 8:
         return empty
     # distance between neighbours in the order, a column at a time (no (N, 3) temporaries)
-    step = np.diff(po[:, 0]) ** 2
-    for i in (1, 2):
-        step += np.diff(po[:, i]) ** 2
-    np.sqrt(step, out=step)
+    step = po.steps()
     along = sid[1:] == sid[:-1]
     spacing = float(np.median(step[along])) if along.any() else 0.05
     # each laser's own point spacing (mm, between neighbouring points of a stripe): a
