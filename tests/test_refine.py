@@ -419,3 +419,29 @@ def test_posterior_draws_predict_the_error_left_after_refinement():
                                n=cr.n[:0], gap=cr.gap[:0], sigma=cr.sigma[:0], angle=cr.angle[:0])
     prior = R.solve_errors(none, ref.origins, PRIOR, s.times, draws=400, seed=1)[2]["posterior"]
     assert np.allclose(prior.std(axis=(0, 1)) / PRIOR.sigmas(), 1.0, atol=0.1)
+
+
+def test_stripes_in_runs_are_the_sorted_stripes(monkeypatch):
+    """Points that come stripe after stripe are ordered by blocks of whole stripes: the same
+    order, stripe ids and bounds, bit for bit, as the sort of the whole scan."""
+    import crossline.scan.refine_crossings as rc
+
+    rng = np.random.default_rng(5)
+    frames = np.repeat(np.arange(300), rng.integers(20, 90, 300))
+    laser = np.where(rng.uniform(size=len(frames)) < 0.5, 1, 2).astype(np.uint8)
+    key = np.lexsort((laser, frames))
+    frames, laser = frames[key], laser[key]
+    p = rng.normal(size=(len(frames), 3)) * [5.0, 0.3, 0.1] + frames[:, None] * 0.4
+    subset = np.flatnonzero(rng.uniform(size=len(frames)) < 0.9)
+    for sub in (None, subset):
+        fp, lab = (frames, laser) if sub is None else (frames[sub], laser[sub])
+        fast = rc._stripes(fp, lab, p, sub) if sub is not None else rc._stripes(fp, lab, p)
+        with monkeypatch.context() as m:
+            m.setattr(rc, "_runs", lambda *a, **k: None)
+            whole = rc._stripes(fp, lab, p, sub)
+        for x, y in zip(fast, whole, strict=True):
+            assert np.array_equal(np.asarray(x, np.int64), np.asarray(y, np.int64))
+    # blocks smaller than the scan: the same again
+    small = rc._stripes_in_runs(rc._runs(frames, laser), p, None, block=1000)
+    for x, y in zip(small, rc._stripes(frames, laser, p), strict=True):
+        assert np.array_equal(np.asarray(x, np.int64), np.asarray(y, np.int64))

@@ -73,6 +73,9 @@ def _stripes(frame_pos: np.ndarray, laser: np.ndarray, p: np.ndarray,
     Returns the order (N,), stripe id of each ordered point, and per stripe its start and end
     in the ordered arrays.
     """
+    bounds = _runs(frame_pos, laser)
+    if bounds is not None:
+        return _stripes_in_runs(bounds, p, subset)
     key = frame_pos.astype(np.int64) * 4 + laser.astype(np.int64)
     ukey, sid, cnt = np.unique(key, return_inverse=True, return_counts=True)
     del key
@@ -96,6 +99,57 @@ def _stripes(frame_pos: np.ndarray, laser: np.ndarray, p: np.ndarray,
     order = np.lexsort((along, sid))
     start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
     return order, sid[order], start, start + cnt
+
+
+def _runs(frame_pos: np.ndarray, laser: np.ndarray, block: int = 1 << 20) -> np.ndarray | None:
+    """Where the points come stripe after stripe in key order (frame, then laser: as
+    triangulate writes them), the start of each stripe and the end of the last (S + 1,);
+    None otherwise. A block at a time: no key array of a long scan."""
+    n = len(frame_pos)
+    cuts = [np.zeros(1, np.int64)]
+    for a in range(0, n, block):
+        k = frame_pos[a:a + block + 1].astype(np.int64) * 4 + laser[a:a + block + 1]
+        step = np.diff(k)
+        if (step < 0).any():
+            return None
+        cuts.append(a + 1 + np.flatnonzero(step))
+    cuts.append(np.array([n], np.int64))
+    return np.unique(np.concatenate(cuts))
+
+
+def _stripes_in_runs(bounds: np.ndarray, p: np.ndarray, subset: np.ndarray | None,
+                     block: int = 1 << 20):
+    """:func:`_stripes` where the stripes are runs of the points (``bounds``, from
+    :func:`_runs`): the same sums, axes and order, worked out a block of whole stripes at a
+    time (each stripe's sums in one ``bincount``, so in the same order), with no per-point
+    temporaries of the whole scan; the stripe ids as int32 where they fit."""
+    start, end = bounds[:-1], bounds[1:]
+    S, n = len(start), int(bounds[-1])
+    cnt = end - start
+    itype = np.int32 if max(n, S) < 2**31 else np.int64
+    sid = np.repeat(np.arange(S, dtype=itype), cnt)
+    order = np.empty(n, dtype=itype)
+    # blocks of whole stripes, about ``block`` points each
+    edges = np.unique(np.concatenate([[0], np.searchsorted(bounds, np.arange(block, n, block)),
+                                      [S]]))
+    for s0, s1 in zip(edges[:-1].tolist(), edges[1:].tolist(), strict=True):
+        a, b = int(bounds[s0]), int(bounds[s1])
+        rows = slice(a, b) if subset is None else subset[a:b]
+        q = p[rows]
+        k = sid[a:b] - s0
+        c = cnt[s0:s1]
+        mean = np.stack([np.bincount(k, q[:, i], s1 - s0) for i in range(3)], 1) / c[:, None]
+        q = [q[:, i] - mean[k, i] for i in range(3)]
+        C = np.empty((s1 - s0, 3, 3))
+        for i in range(3):
+            for j in range(i, 3):
+                C[:, i, j] = C[:, j, i] = np.bincount(k, q[i] * q[j], s1 - s0)
+        axis = np.linalg.eigh(C)[1][:, :, 2]
+        along = q[0] * axis[k, 0]
+        for i in (1, 2):
+            along += q[i] * axis[k, i]
+        order[a:b] = a + np.lexsort((along, k))
+    return order, sid, start, end
 
 
 def _curves(p: np.ndarray, seeds: np.ndarray, lo: np.ndarray, hi: np.ndarray,
@@ -242,7 +296,7 @@ def find_crossings(
     small = len(p) < 2**31 and (len(fp) == 0 or int(fp.max()) < 2**31)
     itype = np.int32 if small else np.int64
     order, sid, start, end = _stripes(fp, lab, p, subset)
-    order, sid = order.astype(itype), sid.astype(itype)
+    order, sid = order.astype(itype, copy=False), sid.astype(itype, copy=False)
     fo, lo_ = fp[order].astype(itype), lab[order].astype(np.int8)
     del fp, lab
     # the points in stripe order by index, not a reordered copy of them (4 B a point, not 24)
