@@ -180,7 +180,7 @@ def fuse_cloud(
     """Optional pose refinement, statistical outlier removal, optional voxel down-sampling
     (per laser), oriented normals: :func:`fuse_columns` on these arrays (its options)."""
     cols = {"xyz": points, "laser": laser, "frame": frame, "points_cam": points_cam,
-            "width": widths, "cameras": cameras}
+            "width": widths, "cameras": cameras, "owned": False}
     del points, laser, frame, points_cam, widths, cameras
     return fuse_columns(cols, **options)
 
@@ -222,10 +222,15 @@ def fuse_columns(
     ``points_cam`` where the scan is too long to hold those. ``arm_draws`` > 0 draws the arm's
     pose errors left in the cloud (``FusedCloud.arm``): from the refinement's posterior, or
     where the poses are not refined from ``arm_prior`` (default ``refine_prior``).
+    ``cols["owned"]`` (default True) says the arrays are handed over: the refined points are
+    then written over ``cols["xyz"]`` (:func:`fuse_cloud` passes False: its caller's arrays are
+    left as they were).
     """
     points, laser, frame = cols.pop("xyz"), cols.pop("laser"), cols.pop("frame")
     points_cam, widths = cols.pop("points_cam", None), cols.pop("width", None)
     cameras = cols.pop("cameras", None)
+    # the columns are the caller's to keep (fuse_cloud) or handed over (run_fuse's, read here)
+    owned = bool(cols.pop("owned", True))
     p = np.ascontiguousarray(points, dtype=np.float64)
     lab = np.asarray(laser)
     if lab.dtype.kind in "OUS":
@@ -257,7 +262,8 @@ def fuse_columns(
         widths = None
         p, cameras, stats["refine"], arm = _refine(
             p, lab, fr, cameras, refine_prior, frame_table, threads, crossing_half_mm,
-            crossing_min_angle_deg, mask, draws=arm_draws)
+            crossing_min_angle_deg, mask, draws=arm_draws,
+            overwrite_points=owned and p.flags.writeable)
         del mask
     elif arm_draws > 0 and (arm_prior is not None or refine_prior is not None):
         arm = _prior_draws(fr, cameras, arm_prior if arm_prior is not None else refine_prior,

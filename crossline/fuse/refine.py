@@ -63,7 +63,7 @@ def _refine(
     p: np.ndarray, lab: np.ndarray, fr: np.ndarray, cameras: tuple[np.ndarray, np.ndarray] | None,
     prior: ArmPrior, frame_table: tuple[np.ndarray, np.ndarray, np.ndarray] | None, threads: int,
     half_mm: float, min_angle_deg: float, crossing_mask: np.ndarray | None, draws: int = 0,
-    seed: int = 0,
+    seed: int = 0, overwrite_points: bool = False,
 ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], dict[str, Any], ArmDraws | None]:
     """Points with refined per-frame poses, the camera centres moved with them, the stats
     of the refinement (JSON-ready) and ``draws`` of the errors it leaves (its posterior)."""
@@ -77,7 +77,8 @@ def _refine(
     times, origins = _frame_times(frames, frame_table, "pose refinement")
     ref = refine_frames(fr, lab, p, views, prior, frames=frames, times=times, origins=origins,
                         half_mm=half_mm, min_angle_deg=min_angle_deg, crossing_mask=crossing_mask,
-                        threads=threads, draws=draws, seed=seed)
+                        threads=threads, draws=draws, seed=seed,
+                        overwrite_points=overwrite_points)
     d = dict(ref.diagnostics)
     # timings go to the log, not to the stats: the same points must give the same bytes
     log.info("pose refinement: %d crossings, %d frames, %.2f s (crossings %.2f s)", d["crossings"],

@@ -114,6 +114,7 @@ def refine_frames(
     threads: int = 1,
     draws: int = 0,
     seed: int = 0,
+    overwrite_points: bool = False,
 ) -> Refinement:
     """Refine every frame's pose from the crossings of its stripes with other frames' stripes.
 
@@ -127,7 +128,9 @@ def refine_frames(
     ``crossing_mask`` (N,) bool, if given, says which points may make crossings (e.g.
     :func:`usable_centres`); every point is moved with its frame all the same. ``draws`` > 0
     draws the errors left after the solve from its posterior (``Refinement.posterior``, for the
-    report's uncertainty), reproducibly from ``seed``.
+    report's uncertainty), reproducibly from ``seed``. With ``overwrite_points`` the moved
+    points are written over ``points`` (a float64 array the caller gives up: a long scan's
+    points are not held twice).
     """
     import time
 
@@ -167,12 +170,15 @@ def refine_frames(
     e, beta, info = solve_errors(cr, org, prior, times, huber=huber, draws=draws, seed=seed)
     posterior = info.pop("posterior", None)
     C = correction_transforms(e[:, :3], e[:, 3:], org)
-    out = transform_points(C, p, fpos)
     # a block of rows at a time: (out - p) ** 2 of a long scan would be two more copies of it
+    out = p if overwrite_points else np.empty_like(p)
     shift2 = np.empty(len(p))
     for r0 in range(0, len(p), 1 << 20):
-        d = out[r0:r0 + (1 << 20)] - p[r0:r0 + (1 << 20)]
-        shift2[r0:r0 + len(d)] = np.einsum("ij,ij->i", d, d)
+        rows = slice(r0, r0 + (1 << 20))
+        moved = transform_points(C, p[rows], fpos[rows])
+        d = moved - p[rows]
+        shift2[rows] = np.einsum("ij,ij->i", d, d)
+        out[rows] = moved
     cnt = np.bincount(fpos, minlength=F)
     frame_rms = np.sqrt(np.bincount(fpos, shift2, F) / np.maximum(cnt, 1))
     seen = np.zeros(F, bool)

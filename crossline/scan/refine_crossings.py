@@ -11,6 +11,7 @@ which re-exports these names.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from itertools import pairwise
 
 import numpy as np
 
@@ -73,9 +74,9 @@ def _stripes(frame_pos: np.ndarray, laser: np.ndarray, p: np.ndarray,
     Returns the order (N,), stripe id of each ordered point, and per stripe its start and end
     in the ordered arrays.
     """
-    bounds = _runs(frame_pos, laser)
-    if bounds is not None:
-        return _stripes_in_runs(bounds, p, subset)
+    runs = _runs(frame_pos, laser)
+    if runs is not None:
+        return _stripes_in_runs(runs, p, subset)
     key = frame_pos.astype(np.int64) * 4 + laser.astype(np.int64)
     ukey, sid, cnt = np.unique(key, return_inverse=True, return_counts=True)
     del key
@@ -101,28 +102,50 @@ def _stripes(frame_pos: np.ndarray, laser: np.ndarray, p: np.ndarray,
     return order, sid[order], start, start + cnt
 
 
-def _runs(frame_pos: np.ndarray, laser: np.ndarray, block: int = 1 << 20) -> np.ndarray | None:
-    """Where the points come stripe after stripe in key order (frame, then laser: as
-    triangulate writes them), the start of each stripe and the end of the last (S + 1,);
-    None otherwise. A block at a time: no key array of a long scan."""
+def _runs(frame_pos: np.ndarray, laser: np.ndarray,
+          block: int = 1 << 20) -> tuple[np.ndarray, np.ndarray | None] | None:
+    """Where the points come frame after frame (as triangulate writes them; the lasers may
+    mix within a frame): the start of each stripe (frame, laser) and the end of the last
+    (S + 1,) in the points sorted by stripe, and that stable sort (None: already in it).
+    None where the frames are out of order. A block of whole frames at a time: no key array
+    or sort of a long scan."""
     n = len(frame_pos)
-    cuts = [np.zeros(1, np.int64)]
-    for a in range(0, n, block):
-        k = frame_pos[a:a + block + 1].astype(np.int64) * 4 + laser[a:a + block + 1]
-        step = np.diff(k)
-        if (step < 0).any():
+    fp = frame_pos
+    if n and (np.diff(fp[::max(1, block)]) < 0).any():
+        return None
+    # blocks of whole frames, about ``block`` points each
+    cuts = [0]
+    for a in range(block, n, block):
+        c = int(np.searchsorted(fp, fp[a], "left"))
+        if c > cuts[-1]:
+            cuts.append(c)
+    cuts.append(n)
+    perm = None
+    starts = []
+    for a, b in pairwise(cuts):
+        f = fp[a:b]
+        if (np.diff(f) < 0).any() or (b < n and fp[b] < f[-1]):
             return None
-        cuts.append(a + 1 + np.flatnonzero(step))
-    cuts.append(np.array([n], np.int64))
-    return np.unique(np.concatenate(cuts))
+        key = f.astype(np.int64) * 4 + laser[a:b]
+        if (np.diff(key) < 0).any():  # the lasers mix within a frame: a stable sort by stripe
+            if perm is None:
+                perm = np.arange(n, dtype=np.int32 if n < 2**31 else np.int64)
+            o = np.argsort(key, kind="stable")
+            perm[a:b] = a + o
+            key = key[o]
+        starts.append(a + np.flatnonzero(np.diff(key, prepend=key[0] - 1)))
+    if n == 0:
+        return np.zeros(1, np.int64), None
+    return np.concatenate([*starts, [n]]).astype(np.int64), perm
 
 
-def _stripes_in_runs(bounds: np.ndarray, p: np.ndarray, subset: np.ndarray | None,
-                     block: int = 1 << 20):
-    """:func:`_stripes` where the stripes are runs of the points (``bounds``, from
-    :func:`_runs`): the same sums, axes and order, worked out a block of whole stripes at a
-    time (each stripe's sums in one ``bincount``, so in the same order), with no per-point
-    temporaries of the whole scan; the stripe ids as int32 where they fit."""
+def _stripes_in_runs(runs: tuple[np.ndarray, np.ndarray | None], p: np.ndarray,
+                     subset: np.ndarray | None, block: int = 1 << 20):
+    """:func:`_stripes` where the points come frame after frame (``runs``, from :func:`_runs`):
+    the same sums, axes and order, worked out a block of whole stripes at a time (each
+    stripe's points in their own order, its sums in one ``bincount``, so bit for bit), with no
+    per-point temporaries of the whole scan; the stripe ids as int32 where they fit."""
+    bounds, perm = runs
     start, end = bounds[:-1], bounds[1:]
     S, n = len(start), int(bounds[-1])
     cnt = end - start
@@ -134,8 +157,8 @@ def _stripes_in_runs(bounds: np.ndarray, p: np.ndarray, subset: np.ndarray | Non
                                       [S]]))
     for s0, s1 in zip(edges[:-1].tolist(), edges[1:].tolist(), strict=True):
         a, b = int(bounds[s0]), int(bounds[s1])
-        rows = slice(a, b) if subset is None else subset[a:b]
-        q = p[rows]
+        idx = np.arange(a, b) if perm is None else perm[a:b]  # positions in the given order
+        q = p[idx if subset is None else subset[idx]]
         k = sid[a:b] - s0
         c = cnt[s0:s1]
         mean = np.stack([np.bincount(k, q[:, i], s1 - s0) for i in range(3)], 1) / c[:, None]
@@ -148,7 +171,7 @@ def _stripes_in_runs(bounds: np.ndarray, p: np.ndarray, subset: np.ndarray | Non
         along = q[0] * axis[k, 0]
         for i in (1, 2):
             along += q[i] * axis[k, i]
-        order[a:b] = a + np.lexsort((along, k))
+        order[a:b] = idx[np.lexsort((along, k))]
     return order, sid, start, end
 
 
@@ -311,7 +334,8 @@ def find_crossings(
     # distance between neighbours in the order, a column at a time (no (N, 3) temporaries)
     step = po.steps()
     along = sid[1:] == sid[:-1]
-    spacing = float(np.median(step[along])) if along.any() else 0.05
+    # medians of the masked copies, sorted in place (np.median would copy each once more)
+    spacing = float(np.median(step[along], overwrite_input=True)) if along.any() else 0.05
     # each laser's own point spacing (mm, between neighbouring points of a stripe): a
     # stripe that runs steeply through the image, or meets the surface at a grazing angle,
     # is sampled more sparsely than the other, by a factor of a few on some rigs
@@ -319,7 +343,7 @@ def find_crossings(
     sp = {}
     for code in (1, 2):
         m = along & (lo_[1:] == code)
-        sp[code] = float(np.median(step[m])) if m.any() else spacing
+        sp[code] = float(np.median(step[m], overwrite_input=True)) if m.any() else spacing
     del step, along, lo_  # 10 B a point, not needed past here: the k-d tree below is the peak
     if radius_mm is None:
         radius_mm = max(0.1, 3.0 * spacing, sp[1], sp[2])
