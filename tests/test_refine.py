@@ -448,3 +448,22 @@ def test_stripes_in_runs_are_the_sorted_stripes(monkeypatch):
             for x, y in zip(small, whole, strict=True):
                 assert np.array_equal(np.asarray(x, np.int64), np.asarray(y, np.int64))
     assert rc._runs(frames[::-1], laser) is None  # frames out of order: the whole sort
+
+
+def test_refined_points_overwrite_only_what_is_handed_over(plate):
+    from crossline.fuse import fuse_cloud
+
+    e = np.random.default_rng(4).normal(size=(len(plate.T), 6)) * ([1e-5] * 3 + [4e-3] * 3)
+    p, ref = plate.refine(e)
+    q = p.copy()
+    frames, views = camera_centres(plate.frame, plate.df[["x_cam", "y_cam", "z_cam"]].to_numpy(), q)
+    again = R.refine_frames(plate.frame, plate.laser, q, views, PRIOR, frames=frames,
+                            origins=reported(plate.df, plate.T, e)[1], times=plate.times,
+                            overwrite_points=True)
+    assert again.points is q and np.array_equal(q, ref.points)  # the same points, in place
+    assert not np.array_equal(q, p)
+    # the public fuse_cloud leaves its caller's arrays as they were
+    before = p.copy()
+    c = fuse_cloud(p, plate.laser, plate.frame, plate.df[["x_cam", "y_cam", "z_cam"]].to_numpy(),
+                   neighbours=0, refine_prior=PRIOR)
+    assert np.array_equal(p, before) and c.stats["refine"]["crossings"] > 0
