@@ -75,31 +75,13 @@ def _stripes(frame_pos: np.ndarray, laser: np.ndarray, p: np.ndarray,
     in the ordered arrays.
     """
     runs = _runs(frame_pos, laser)
-    if runs is not None:
-        return _stripes_in_runs(runs, p, subset)
-    key = frame_pos.astype(np.int64) * 4 + laser.astype(np.int64)
-    ukey, sid, cnt = np.unique(key, return_inverse=True, return_counts=True)
-    del key
-    S = len(ukey)
-
-    def column(i: int) -> np.ndarray:
-        return p[:, i] if subset is None else p[subset, i]
-
-    mean = np.stack([np.bincount(sid, column(i), S) for i in range(3)], 1) / cnt[:, None]
-    # one centred column at a time: (N, 3) temporaries cost a long scan 24 B a point each
-    q = [column(i) - mean[sid, i] for i in range(3)]
-    C = np.empty((S, 3, 3))
-    for i in range(3):
-        for j in range(i, 3):
-            C[:, i, j] = C[:, j, i] = np.bincount(sid, q[i] * q[j], S)
-    axis = np.linalg.eigh(C)[1][:, :, 2]
-    along = q[0] * axis[sid, 0]
-    for i in (1, 2):
-        along += q[i] * axis[sid, i]
-    del q
-    order = np.lexsort((along, sid))
-    start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
-    return order, sid[order], start, start + cnt
+    if runs is None:  # frames out of order: one stable sort of the whole scan by stripe
+        key = frame_pos.astype(np.int64) * 4 + laser.astype(np.int64)
+        perm = np.argsort(key, kind="stable")
+        key = key[perm]
+        starts = np.flatnonzero(np.diff(key, prepend=key[0] - 1)) if len(key) else []
+        runs = np.concatenate([starts, [len(key)]]).astype(np.int64), perm
+    return _stripes_in_runs(runs, p, subset)
 
 
 def _runs(frame_pos: np.ndarray, laser: np.ndarray,
@@ -111,8 +93,8 @@ def _runs(frame_pos: np.ndarray, laser: np.ndarray,
     or sort of a long scan."""
     n = len(frame_pos)
     fp = frame_pos
-    if n and (np.diff(fp[::max(1, block)]) < 0).any():
-        return None
+    if n == 0:
+        return np.zeros(1, np.int64), None
     # blocks of whole frames, about ``block`` points each
     cuts = [0]
     for a in range(block, n, block):
@@ -134,8 +116,6 @@ def _runs(frame_pos: np.ndarray, laser: np.ndarray,
             perm[a:b] = a + o
             key = key[o]
         starts.append(a + np.flatnonzero(np.diff(key, prepend=key[0] - 1)))
-    if n == 0:
-        return np.zeros(1, np.int64), None
     return np.concatenate([*starts, [n]]).astype(np.int64), perm
 
 
