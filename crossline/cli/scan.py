@@ -132,6 +132,10 @@ def _triangulate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--track-references", type=_bool, default=True,
                    help="an AB frame's labelled stripes are the references of the next AB frame "
                         "(default true; false = the paper: references from A and B frames only)")
+    p.add_argument("--sheet-curvature", type=_bool, default=True,
+                   help="move each centre by the bias a sheet of finite thickness gives it on a "
+                        "curved surface, from the scan's own shape and the extractor's measured "
+                        "response (default true; false = centres as extracted)")
     p.add_argument("--smooth-px", type=int, default=7,
                    help="smooth each centre line along the stripe over this many columns "
                         "(odd; local quadratic; default 7, as config.yaml; 1 = off)")
@@ -146,7 +150,8 @@ def _triangulate(p: argparse.ArgumentParser) -> None:
             threshold_px=a.threshold_px, max_frame_gap=a.max_frame_gap,
             ambiguity_px=a.ambiguity_px, predict=a.predict, end_trim_px=a.end_trim_px,
             smooth_px=a.smooth_px, bridge_columns=a.bridge_columns,
-            track_references=a.track_references, stats=a.stats,
+            track_references=a.track_references, sheet_curvature=a.sheet_curvature,
+            stats=a.stats,
         )
         return 0
 

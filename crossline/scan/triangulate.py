@@ -32,7 +32,9 @@ from crossline.laser import LaserPlanes
 from crossline.scan.centreline import blocked_ends, link_traces, smooth_along, trace_position
 from crossline.scan.cross_order import CrossOrder
 from crossline.scan.labels import Disambiguator, check_pattern, reference_gap
-from crossline.scan.stripes import MERGED, STRIPES_SCHEMA, read_stripes_meta
+from crossline.scan.sheet_curvature import FWHM, CellSums, centre_shift, skew_response
+from crossline.scan.stripe_gaussian import ACROSS_SLOPE
+from crossline.scan.stripes import MERGED, STRIPES_SCHEMA, _frame_work, read_stripes_meta
 
 log = logging.getLogger(__name__)
 
@@ -56,13 +58,15 @@ POINTS_SCHEMA = pa.schema(
         ("ridge", pa.float32()),
         ("flags", pa.uint8()),
         ("ref_dist", pa.float32()),
+        ("width_n", pa.float32()),  # the profile's width across the stripe, px (the extractor's)
+        ("axis", pa.uint8()),  # 0: the centre's profile ran along its column, 1: along its row
     ]
 )
 _META_KEY = b"crossline"
 _LASER_NAMES = pa.array(["A", "B"], pa.string())  # a labelled point's laser, by code 0 / 1
 MIN_TRACE_COLUMNS = 3  # shorter traces are dropped with the trimmed stripe ends
 # the stripes file's columns triangulate reads (of STRIPES_SCHEMA's types)
-_STRIPE_COLUMNS = ("frame", "lasers", "u", "v", "strength", "width", "ridge", "flags")
+_STRIPE_COLUMNS = ("frame", "lasers", "u", "v", "strength", "width", "width_n", "ridge", "flags", "axis")
 
 
 def triangulate(
@@ -188,6 +192,7 @@ def run_triangulate(
     smooth_px: int = 1,
     bridge_columns: int = 8,
     track_references: bool = True,
+    sheet_curvature: bool = True,
     stats: str | Path | None = None,
 ) -> dict[str, Any]:
     """Label, triangulate and write the points of one scan; return the counts.
@@ -199,7 +204,9 @@ def run_triangulate(
     Up to ``bridge_columns`` columns missing in a reference stripe between two of its centres
     are interpolated before AB centres are matched (:func:`crossline.scan.labels.bridge_gaps`);
     with ``track_references`` an AB frame's labelled stripes are the references of the next.
-    ``max_frame_gap=None`` allows one frame more than the scan's own laser pattern needs
+    With ``sheet_curvature`` each centre is moved by the bias that the sheet's thickness
+    gives it on a curved surface (:mod:`crossline.scan.sheet_curvature`; a second pass over
+    the written points). ``max_frame_gap=None`` allows one frame more than the scan's own laser pattern needs
     (:func:`crossline.scan.labels.reference_gap`): 3 for the paper's A, B, AB. ``smooth_px``
     defaults to 1 (every column on its own, as the paper); the workflow's config smooths
     over 5.
@@ -260,107 +267,125 @@ def run_triangulate(
                         np.empty(0, np.uint8))
             next_pos += 1
 
-    with atomic_path(out) as tmp, pq.ParquetWriter(
-        tmp, POINTS_SCHEMA, compression="zstd", use_dictionary=["frame", "laser", "lasers", "flags"],
-        write_statistics=["frame"],
-    ) as w:
-        for g in range(pf.num_row_groups):
-            t = pf.read_row_group(g)
-            frame = t.column("frame").to_numpy()
-            u = t.column("u").to_numpy()
-            v = t.column("v").to_numpy()
-            flags = t.column("flags").to_numpy()
-            _check_stripe_rows(stripes, frame, u, v)
-            try:
-                pos = np.fromiter((pos_of[f] for f in np.unique(frame).tolist()), np.int64)
-            except KeyError as exc:
-                raise StageError(f"{stripes}: frame {exc} is not a frame of scan {scan!r}") from exc
-            ufr = np.unique(frame)
-            starts = np.searchsorted(frame, ufr, side="left")
-            ends = np.searchsorted(frame, ufr, side="right")
-            label = np.full(frame.size, "", dtype="<U2")
-            dist = np.full(frame.size, np.nan)
-            for f, p, a, b in zip(ufr.tolist(), pos.tolist(), starts, ends, strict=True):
-                if p < next_pos:
-                    raise StageError(f"{stripes}: frames out of order at frame {f}")
-                feed_until(p)
-                lab, dd = dis.process(f, str(sc.lasers[p]), u[a:b], v[a:b], flags[a:b])
-                label[a:b] = lab
-                dist[a:b] = dd
-                next_pos = p + 1
-            keep = label != ""
-            if not keep.any():
-                continue
-            idx = np.flatnonzero(keep)
-            prev = link_traces(frame[idx], label[idx], u[idx], v[idx])
-            trace, from_start, to_end = trace_position(prev, u[idx], v[idx])
-            # a trace that stops at the crossing of A and B (a merged run next to its end) has
-            # not reached the end of its stripe: that end is not trimmed
-            blob = np.flatnonzero((flags & MERGED) != 0)
-            start_open, end_open = blocked_ends(trace, frame[idx], u[idx], v[idx], frame[blob],
-                                                u[blob], v[blob])
-            from_start = np.where(start_open, np.inf, from_start)
-            to_end = np.where(end_open, np.inf, to_end)
-            inner = np.minimum(from_start, to_end) >= end_trim_px
-            # a trace of a few columns is no stripe, whatever stops it (a glint, a stray centre)
-            inner &= np.bincount(trace, minlength=trace.size)[trace] >= MIN_TRACE_COLUMNS
-            v_used, whole = smooth_along(trace, u[idx], v[idx], smooth_px)
-            trimmed["stripe_end"] += int((~inner).sum())
-            trimmed["smoothing_window"] += int((inner & ~whole).sum())
-            v_used, idx = v_used[inner & whole], idx[inner & whole]
-            if idx.size == 0:
-                continue
-            uv = np.stack([u[idx], v_used], axis=1)
-            lab = label[idx]
-            p_cam = triangulate(cam, planes, uv, lab)
-            fpos = by_number[np.searchsorted(sorted_frames, frame[idx])]  # scan position of each point
-            p_base = transform_points(T_base_cam, p_cam, fpos)
-            sel = t.take(pa.array(idx))
-            cols = {
-                "frame": sel.column("frame"),
-                "laser": _LASER_NAMES.take(pa.array((lab == "B").astype(np.int8))),
-                "lasers": sel.column("lasers"),
-                "u": sel.column("u"),
-                "v": pa.array(v_used),
-                "x_cam": pa.array(p_cam[:, 0]), "y_cam": pa.array(p_cam[:, 1]),
-                "z_cam": pa.array(p_cam[:, 2]),
-                "x": pa.array(p_base[:, 0]), "y": pa.array(p_base[:, 1]), "z": pa.array(p_base[:, 2]),
-                "strength": sel.column("strength"),
-                "width": sel.column("width"),
-                "ridge": sel.column("ridge"),
-                "flags": sel.column("flags"),
-                "ref_dist": pa.array(dist[idx].astype(np.float32)),
-            }
-            tbl = pa.table(cols, schema=POINTS_SCHEMA)
-            w.write_table(tbl, row_group_size=tbl.num_rows)
-            n_points += tbl.num_rows
-        feed_until(len(sc.frames))
-        counts = dict(dis.counts)
-        counts["trimmed"] = dict(trimmed)  # labelled, then dropped: stripe ends and short traces
-        meta = {
-            "scan": scan,
-            "extractor": smeta.get("extractor"),
-            "params": {"threshold_px": threshold_px, "max_frame_gap": max_frame_gap,
-                       "ambiguity_px": ambiguity_px, "predict": bool(predict),
-                       "end_trim_px": end_trim_px, "smooth_px": smooth_px,
-                       "bridge_columns": bridge_columns, "track_references": bool(track_references)},
-            "points": n_points,
-            "frames": len(sc.frames),
-            "points_per_frame": n_points / max(len(sc.frames), 1),
-            "pattern": pat["period"],
-            "pattern_breaks": len(pat["breaks"]),
-            "counts": counts,
-            "stripes_counts": smeta.get("counts", {}),
-        }
-        if rig_lasers != ("A", "B"):  # the two-laser rig's files stay as they were
-            meta["lasers"] = list(rig_lasers)
-            meta["labelling"] = ("one-line rig: every centre is laser A's (no disambiguation)"
-                                 if rig_lasers == ("A",) else "")
-            meta["counts"] = _only_lasers(meta["counts"], rig_lasers)
-        if n_points == 0:  # raised inside the block: no file is left behind
-            raise StageError(f"scan {scan}: no stripe centre could be labelled A or B in {stripes} "
-                             f"(counts: {json.dumps(counts)})")
-        w.add_key_value_metadata({_META_KEY: json.dumps(meta, sort_keys=True)})
+    cells = CellSums()  # the points per cell of the base frame: the surface's shape
+    with atomic_path(out) as tmp:
+        # the sheet-curvature correction needs every point's neighbours: a second pass
+        first = tmp.with_name(tmp.name + ".pass1") if sheet_curvature else tmp
+        try:
+            with pq.ParquetWriter(
+                first, POINTS_SCHEMA, compression="zstd",
+                use_dictionary=["frame", "laser", "lasers", "flags"], write_statistics=["frame"],
+            ) as w:
+                for g in range(pf.num_row_groups):
+                    t = pf.read_row_group(g)
+                    frame = t.column("frame").to_numpy()
+                    u = t.column("u").to_numpy()
+                    v = t.column("v").to_numpy()
+                    flags = t.column("flags").to_numpy()
+                    _check_stripe_rows(stripes, frame, u, v)
+                    try:
+                        pos = np.fromiter((pos_of[f] for f in np.unique(frame).tolist()), np.int64)
+                    except KeyError as exc:
+                        raise StageError(f"{stripes}: frame {exc} is not a frame of scan {scan!r}") from exc
+                    ufr = np.unique(frame)
+                    starts = np.searchsorted(frame, ufr, side="left")
+                    ends = np.searchsorted(frame, ufr, side="right")
+                    label = np.full(frame.size, "", dtype="<U2")
+                    dist = np.full(frame.size, np.nan)
+                    for f, p, a, b in zip(ufr.tolist(), pos.tolist(), starts, ends, strict=True):
+                        if p < next_pos:
+                            raise StageError(f"{stripes}: frames out of order at frame {f}")
+                        feed_until(p)
+                        lab, dd = dis.process(f, str(sc.lasers[p]), u[a:b], v[a:b], flags[a:b])
+                        label[a:b] = lab
+                        dist[a:b] = dd
+                        next_pos = p + 1
+                    keep = label != ""
+                    if not keep.any():
+                        continue
+                    idx = np.flatnonzero(keep)
+                    prev = link_traces(frame[idx], label[idx], u[idx], v[idx])
+                    trace, from_start, to_end = trace_position(prev, u[idx], v[idx])
+                    # a trace that stops at the crossing of A and B (a merged run next to its end) has
+                    # not reached the end of its stripe: that end is not trimmed
+                    blob = np.flatnonzero((flags & MERGED) != 0)
+                    start_open, end_open = blocked_ends(trace, frame[idx], u[idx], v[idx], frame[blob],
+                                                        u[blob], v[blob])
+                    from_start = np.where(start_open, np.inf, from_start)
+                    to_end = np.where(end_open, np.inf, to_end)
+                    inner = np.minimum(from_start, to_end) >= end_trim_px
+                    # a trace of a few columns is no stripe, whatever stops it (a glint, a stray centre)
+                    inner &= np.bincount(trace, minlength=trace.size)[trace] >= MIN_TRACE_COLUMNS
+                    v_used, whole = smooth_along(trace, u[idx], v[idx], smooth_px)
+                    trimmed["stripe_end"] += int((~inner).sum())
+                    trimmed["smoothing_window"] += int((inner & ~whole).sum())
+                    v_used, idx = v_used[inner & whole], idx[inner & whole]
+                    if idx.size == 0:
+                        continue
+                    uv = np.stack([u[idx], v_used], axis=1)
+                    lab = label[idx]
+                    p_cam = triangulate(cam, planes, uv, lab)
+                    # the scan position of each point
+                    fpos = by_number[np.searchsorted(sorted_frames, frame[idx])]
+                    p_base = transform_points(T_base_cam, p_cam, fpos)
+                    sel = t.take(pa.array(idx))
+                    cols = {
+                        "frame": sel.column("frame"),
+                        "laser": _LASER_NAMES.take(pa.array((lab == "B").astype(np.int8))),
+                        "lasers": sel.column("lasers"),
+                        "u": sel.column("u"),
+                        "v": pa.array(v_used),
+                        "x_cam": pa.array(p_cam[:, 0]), "y_cam": pa.array(p_cam[:, 1]),
+                        "z_cam": pa.array(p_cam[:, 2]),
+                        "x": pa.array(p_base[:, 0]), "y": pa.array(p_base[:, 1]), "z": pa.array(p_base[:, 2]),
+                        "strength": sel.column("strength"),
+                        "width": sel.column("width"),
+                        "ridge": sel.column("ridge"),
+                        "flags": sel.column("flags"),
+                        "ref_dist": pa.array(dist[idx].astype(np.float32)),
+                        "width_n": sel.column("width_n"),
+                        "axis": sel.column("axis"),
+                    }
+                    if sheet_curvature:
+                        cells.add(p_base)
+                    tbl = pa.table(cols, schema=POINTS_SCHEMA)
+                    w.write_table(tbl, row_group_size=tbl.num_rows)
+                    n_points += tbl.num_rows
+                feed_until(len(sc.frames))
+                counts = dict(dis.counts)
+                counts["trimmed"] = dict(trimmed)  # labelled, then dropped: stripe ends and short traces
+                meta = {
+                    "scan": scan,
+                    "extractor": smeta.get("extractor"),
+                    "params": {"threshold_px": threshold_px, "max_frame_gap": max_frame_gap,
+                               "ambiguity_px": ambiguity_px, "predict": bool(predict),
+                               "end_trim_px": end_trim_px, "smooth_px": smooth_px,
+                               "bridge_columns": bridge_columns, "track_references": bool(track_references)},
+                    "points": n_points,
+                    "frames": len(sc.frames),
+                    "points_per_frame": n_points / max(len(sc.frames), 1),
+                    "pattern": pat["period"],
+                    "pattern_breaks": len(pat["breaks"]),
+                    "counts": counts,
+                    "stripes_counts": smeta.get("counts", {}),
+                }
+                if rig_lasers != ("A", "B"):  # the two-laser rig's files stay as they were
+                    meta["lasers"] = list(rig_lasers)
+                    meta["labelling"] = ("one-line rig: every centre is laser A's (no disambiguation)"
+                                         if rig_lasers == ("A",) else "")
+                    meta["counts"] = _only_lasers(meta["counts"], rig_lasers)
+                if n_points == 0:  # raised inside the block: no file is left behind
+                    raise StageError(f"scan {scan}: no stripe centre could be labelled A or B in {stripes} "
+                                     f"(counts: {json.dumps(counts)})")
+                w.add_key_value_metadata({_META_KEY: json.dumps(meta, sort_keys=True)})
+            if sheet_curvature:
+                meta["sheet_curvature"] = correct_points_file(
+                    first, tmp, cam, planes, T_base_cam, by_number, sorted_frames, smeta,
+                    cells,
+                    lambda m: {_META_KEY: json.dumps(m, sort_keys=True)}, meta)
+        finally:
+            if first != tmp:
+                first.unlink(missing_ok=True)
     write_json(Path(stats) if stats is not None else out.with_suffix(".json"), meta)
     log.info("scan %s: %d points from %d centres in %.2f s", scan, n_points, counts["centres_in"],
              time.perf_counter() - t0)
@@ -376,3 +401,202 @@ def read_points_meta(path: str | Path) -> dict[str, Any]:
     if not isinstance(meta, dict):
         raise StageError(f"{path}: not a points file (its crossline metadata is not a JSON object)")
     return meta
+
+
+def _median(values: Any, default: float) -> float:
+    x = np.asarray(values if values is not None else [], dtype=np.float64)
+    x = x[np.isfinite(x)]
+    return float(np.median(x)) if x.size else default
+
+
+KAPPA_MIN = 0.01  # 1/mm: a flat plate's cells scatter up to ~0.007 with the points' noise
+BIAS_FLOOR_MM = 0.0005  # surfaces flatter than gives this bias keep their centres
+SHEET_SAMPLE = 60000  # centres whose widths tell the sheet's thickness from the blur
+
+
+def correct_points_file(
+    first: Path, out: Path, cam: Camera, planes: LaserPlanes, T_base_cam: np.ndarray,
+    by_number: np.ndarray, sorted_frames: np.ndarray, smeta: dict[str, Any], cells: CellSums,
+    meta_of: Any, meta: dict[str, Any],
+) -> dict[str, Any]:
+    """Write ``out``: the points of ``first`` with each centre moved by its sheet-curvature bias
+    (:mod:`crossline.scan.sheet_curvature`) and triangulated again; return the correction's
+    figures. ``cells`` holds the scan's points in the base frame (the surface's shape);
+    ``meta_of(meta)`` gives the file's key-value metadata.
+
+    Each laser's emitter, which Lambert's term needs, is taken at the foot of the perpendicular
+    from the camera centre to its plane: no calibration here measures it, and 50 mm off there
+    turns the light's direction by a few degrees at the working distance.
+    """
+    t0 = time.perf_counter()
+    shape = cells.shape()
+    del cells
+    kappa = shape.curvature()
+    pf = pq.ParquetFile(first)
+    levels, noise = smeta.get("levels") or {}, smeta.get("noise") or {}
+    background = _median(levels.get("background"), 0.0)
+    data_max = float((smeta.get("data_range") or {}).get("max") or 255.0)
+    extractor, params = smeta.get("extractor"), smeta.get("params")
+    info: dict[str, Any] = {"enabled": True, "cells": len(kappa)}
+    curved = np.zeros(len(kappa), dtype=bool)
+    sheet: dict[str, tuple[float, float]] = {}
+    if extractor is None or not isinstance(params, dict):
+        info["skipped"] = "the stripes file does not name its extractor and parameters"
+    else:
+        widths = pf.read(columns=["width_n"]).column("width_n").to_numpy()
+        work = _frame_work(str(extractor), params, data_max)
+        wk, kk = skew_response(
+            lambda imT: work(0, imT), widths,
+            peak=max(_median(levels.get("peak"), data_max) - background, 1.0), background=background,
+            relative_noise=_median(noise.get("relative_noise"), 0.15),
+            noise_dn=_median(noise.get("background_noise_dn"), _median(levels.get("noise"), 1.0)),
+            data_max=data_max)
+        del widths
+        info["response"] = {"width_px": wk.round(3).tolist(), "K_px2": kk.round(3).tolist()}
+        # which profiles ran across the stripe instead of along their column (row)
+        across = (0.0 if extractor == "steger"
+                  else ACROSS_SLOPE if extractor == "gaussian" and params.get("fit_across") else np.inf)
+        if len(wk) == 0:
+            info["skipped"] = "the extractor found no stripe in its synthetic profiles"
+        else:
+            sheet = _sheet_sigmas(pf, cam, planes, T_base_cam, by_number, sorted_frames, shape)
+            info["sheet_sigma_mm"] = {k: round(v[0], 5) for k, v in sheet.items()}
+            info["blur_sigma_px"] = round(next(iter(sheet.values()), (0.0, float("nan")))[1], 4)
+            # curved enough for a bias of BIAS_FLOOR_MM (about 3 sigma_f^2 kappa), and above the
+            # curvature that the points' noise gives a flat surface
+            thick = max((v[0] for v in sheet.values()), default=0.0)
+            kmin = max(KAPPA_MIN, BIAS_FLOOR_MM / (3.0 * thick**2)) if thick > 0 else np.inf
+            curved = shape.ok & (kappa > kmin)
+            info["curvature_min_per_mm"] = round(float(kmin), 5) if np.isfinite(kmin) else None
+            info["curved_cells"] = int(curved.sum())
+    moved, shifts = 0, []
+    with pq.ParquetWriter(out, POINTS_SCHEMA, compression="zstd",
+                          use_dictionary=["frame", "laser", "lasers", "flags"],
+                          write_statistics=["frame"]) as w:
+        for g in range(pf.num_row_groups):
+            t = pf.read_row_group(g)
+            if "skipped" not in info and any(v[0] > 0 for v in sheet.values()):
+                t, sh = _corrected_group(t, cam, planes, T_base_cam, by_number, sorted_frames,
+                                         shape, curved, wk, kk, across, sheet)
+                moved += sh.size
+                shifts.append(sh)
+            w.write_table(t, row_group_size=t.num_rows)
+        sh = np.abs(np.concatenate(shifts)) if shifts else np.empty(0)
+        info.update({
+            "points_moved": int(moved),
+            "median_shift_px": float(np.median(sh)) if sh.size else 0.0,
+            "p95_shift_px": float(np.quantile(sh, 0.95)) if sh.size else 0.0,
+            "seconds": round(time.perf_counter() - t0, 3),
+        })
+        meta["sheet_curvature"] = info
+        w.add_key_value_metadata(meta_of(meta))
+    log.info("sheet curvature: %d centres on curved surfaces moved (median %.4f px, 95 %% %.4f px); "
+             "sheet sigma %s mm", moved, info["median_shift_px"], info["p95_shift_px"],
+             info.get("sheet_sigma_mm"))
+    return info
+
+
+def _frame_geometry(t: pa.Table, T_base_cam: np.ndarray, by_number: np.ndarray,
+                    sorted_frames: np.ndarray, shape: Any, rows: np.ndarray):
+    """Camera-frame points and surface shapes of ``rows`` of a points table."""
+    frame = t.column("frame").to_numpy()[rows]
+    fpos = by_number[np.searchsorted(sorted_frames, frame)]
+    pc = np.stack([t.column(c).to_numpy()[rows] for c in ("x_cam", "y_cam", "z_cam")], 1)
+    pb = np.stack([t.column(c).to_numpy()[rows] for c in ("x", "y", "z")], 1)
+    return fpos, pc, shape.cell_of(pb)
+
+
+def _to_cam(R: np.ndarray, shape: Any, cell: np.ndarray) -> list[np.ndarray]:
+    return [np.einsum("nji,nj->ni", R, a[cell]) for a in (shape.normal, shape.e1, shape.e2)]
+
+
+def _sheet_sigmas(pf: pq.ParquetFile, cam: Camera, planes: LaserPlanes, T_base_cam: np.ndarray,
+                  by_number: np.ndarray, sorted_frames: np.ndarray, shape: Any
+                  ) -> dict[str, tuple[float, float]]:
+    """Each laser's sheet sigma (mm) and the blur (px), from a sample of the scan's centres."""
+    from crossline.scan.sheet_curvature import FWHM, sheet_sigma, stripe_gradient
+
+    step = max(1, -(-pf.metadata.num_rows // SHEET_SAMPLE))
+    got: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {n: [] for n in planes.names}
+    start = 0
+    for g in range(pf.num_row_groups):
+        t = pf.read_row_group(g, columns=["frame", "laser", "u", "v", "x_cam", "y_cam", "z_cam",
+                                          "x", "y", "z", "width_n"])
+        rows = np.arange((-start) % step, t.num_rows, step)
+        start += t.num_rows
+        fpos, pc, cell = _frame_geometry(t, T_base_cam, by_number, sorted_frames, shape, rows)
+        lab = t.column("laser").to_numpy(zero_copy_only=False).astype(str)[rows]
+        uv = np.stack([t.column("u").to_numpy()[rows], t.column("v").to_numpy()[rows]], 1)
+        wn = t.column("width_n").to_numpy()[rows].astype(np.float64)
+        ok = cell >= 0
+        ok[ok] = shape.ok[cell[ok]]
+        R = T_base_cam[fpos, :3, :3]
+        for name in planes.names:
+            m = np.flatnonzero(ok & (lab == name))
+            if m.size:
+                pl = planes[name]
+                geo = (*_to_cam(R[m], shape, cell[m]), shape.second[cell[m]])
+                grad, _ = stripe_gradient(cam, pl.normal, pl.d, uv[m], pc[m], *geo)
+                got[name].append((grad, wn[m] / FWHM))
+    sig, blur = sheet_sigma({k: (np.concatenate([a for a, _ in v]), np.concatenate([b for _, b in v]))
+                             for k, v in got.items() if v})
+    return {k: (v, blur) for k, v in sig.items()}
+
+
+def _corrected_group(t: pa.Table, cam: Camera, planes: LaserPlanes, T_base_cam: np.ndarray,
+                     by_number: np.ndarray, sorted_frames: np.ndarray, shape: Any, curved: np.ndarray,
+                     wk: np.ndarray, kk: np.ndarray, across: float,
+                     sheet: dict[str, tuple[float, float]]) -> tuple[pa.Table, np.ndarray]:
+    """One row group with the centres on curved surfaces corrected; (table, their shifts px)."""
+    from crossline.scan.sheet_curvature import stripe_gradient
+
+    n_rows = t.num_rows
+    fpos, pc, cell = _frame_geometry(t, T_base_cam, by_number, sorted_frames, shape, np.arange(n_rows))
+    lab = t.column("laser").to_numpy(zero_copy_only=False).astype(str)
+    uv = np.stack([t.column("u").to_numpy(), t.column("v").to_numpy()], 1)
+    pb = np.stack([t.column(c).to_numpy() for c in ("x", "y", "z")], 1)
+    wn = t.column("width_n").to_numpy().astype(np.float64)
+    axis = t.column("axis").to_numpy()
+    use = (cell >= 0) & np.isfinite(wn) & np.isfinite(pc).all(1)
+    use[use] = curved[cell[use]]
+    R = T_base_cam[fpos, :3, :3]  # base <- cam of each point's frame
+    bias = np.full(n_rows, np.nan)
+    scale = np.ones(n_rows)  # px along the column (row) per px along the profile
+    for name in planes.names:
+        m = np.flatnonzero(use & (lab == name))
+        sig = sheet.get(name, (0.0, np.nan))[0]
+        if m.size == 0 or not sig > 0:
+            continue
+        pl = planes[name]
+        c = cell[m]
+        geo = (*_to_cam(R[m], shape, c), shape.second[c])
+        g, ph = stripe_gradient(cam, pl.normal, pl.d, uv[m], pc[m], *geo)
+        # a profile fitted across the stripe (the extractor's steep stripes) is along the normal
+        with np.errstate(invalid="ignore", divide="ignore"):
+            a_, b_ = np.abs(ph[:, 0]), np.abs(ph[:, 1])
+            steep = np.where(axis[m] == 1, b_ / a_, a_ / b_) > across
+            along = np.where((axis[m] == 1)[:, None], [1.0, 0.0], [0.0, 1.0])
+            along[steep] = np.nan
+            bias[m], _, _ = centre_shift(cam, pl.normal, pl.d, uv[m], pc[m], *geo, sigma_f=sig,
+                                         ratio=np.interp(wn[m], wk, kk / wk**2), along=along,
+                                         emitter=-pl.d * np.asarray(pl.normal), gradient=(g, ph))
+            # a centre stays on its column (row): one fitted across the stripe was carried
+            # along the line to it, and so is its shift
+            scale[m] = np.where(steep, np.where(axis[m] == 0, ph[:, 1], ph[:, 0]), 1.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        shift = bias / scale
+    # a shift beyond half the profile's width is no skew but a wrong shape (an edge, a step)
+    ok = np.isfinite(shift) & (np.abs(shift) <= 0.5 * wn / FWHM)
+    idx = np.flatnonzero(ok)
+    if idx.size == 0:
+        return t, np.empty(0)
+    new = uv.copy()
+    col = axis[idx] == 0
+    new[idx[col], 1] -= shift[idx[col]]
+    new[idx[~col], 0] -= shift[idx[~col]]
+    pc[idx] = triangulate(cam, planes, new[idx], lab[idx])
+    pb[idx] = transform_points(T_base_cam, pc[idx], fpos[idx])
+    for names, arr in ((("u", "v"), new), (("x_cam", "y_cam", "z_cam"), pc), (("x", "y", "z"), pb)):
+        for i, c in enumerate(names):
+            t = t.set_column(t.schema.get_field_index(c), c, pa.array(arr[:, i]))
+    return t, shift[idx]

@@ -74,6 +74,7 @@ rule triangulate_points:
         smooth_px=config["points"]["smooth_px"],
         bridge_columns=config["points"]["bridge_columns"],
         track_references=config["points"]["track_references"],
+        sheet_curvature=config["points"]["sheet_curvature"],
     log:
         "logs/{capture}/triangulate_points/{scan}.log",
     benchmark:
@@ -90,4 +91,5 @@ rule triangulate_points:
         "--predict {params.predict} --end-trim-px {params.end_trim_px} "
         "--smooth-px {params.smooth_px} --bridge-columns {params.bridge_columns} "
         "--track-references {params.track_references} "
+        "--sheet-curvature {params.sheet_curvature} "
         "--stats {output.stats} > {log} 2>&1"

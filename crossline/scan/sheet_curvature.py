@@ -1,0 +1,440 @@
+"""The stripe-centre bias of a sheet of finite thickness on a curved surface, and its correction.
+
+A laser sheet is not a plane but a Gaussian slab: its irradiance falls as
+``exp(-f^2 / 2 sigma_f^2)`` with ``f`` the distance from its centre plane (``sigma_f`` is half
+the 1/e^2 half-thickness). A pixel sees the surface point its ray meets, so the image profile
+across the stripe is that Gaussian of ``f`` read along the image. On a flat surface ``f`` is
+linear in the image coordinate ``tau`` across the stripe: the profile is symmetric and every
+extractor finds the pixel whose ray meets the centre plane, where triangulation puts the point.
+On a curved surface ``f(tau) = f1 tau + f2 tau^2``: the profile is skewed and an extractor's
+centre moves off ``f = 0`` by ``K (f2 / f1)`` px, ``K`` about ``k sigma_u^2`` with ``sigma_u =
+sigma_f / f1`` the profile's width; ``k`` is the extractor's response to skew (about -3 for an
+intensity centroid, -5.5 for the speckle-weighted Gaussian fit, whose weights favour the
+tails; a mode would not move). The centre, triangulated with the centre plane, lands off the
+surface: a sphere of radius R is measured small by about ``sigma_f^2 / R`` times the
+extractor's factor (random rig 7: sheet 0.34 mm, ball 20 mm, diameter -37 um; with a sheet
+0.35 x as thick, -2 um).
+
+The correction, at the cause: :func:`surface_shape` fits the local shape of the scanned
+surface (normal and second fundamental form, from the scan's own points over a few mm),
+:func:`centre_shift` computes each centre's ``f(tau)`` by intersecting the rays of the
+neighbouring pixels with that shape, and the shift ``K (f2 / f1)`` along the stripe's image
+normal; :func:`skew_response` measures ``K`` as a function of the stripe width the extractor
+reports, by running the scan's own extractor (same parameters) on synthetic skewed profiles at
+the scan's levels and noise. Nothing here knows the renderer: sheet thickness enters through
+the measured stripe width, the shape through the measured points.
+
+Left out: the incidence term (Lambert's cosine changes across the band on a curved surface, a
+second skew, ~0.6 um on rig 7's ball): it needs each laser's emitter position, which no
+calibration here measures.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+__all__ = [
+    "CellSums",
+    "SurfaceShape",
+    "cell_keys",
+    "centre_shift",
+    "response_at",
+    "sheet_sigma",
+    "skew_response",
+    "stripe_gradient",
+    "surface_shape",
+]
+
+SKEW_BETA = 0.02  # skew of the synthetic profiles: f = t + beta t^2 / sigma (linear response)
+SYNTH_COLUMNS = 384  # columns per synthetic frame
+BLOCK = 8192  # centres (or points) handled at a time: bounded memory on long scans
+FWHM = 2.0 * np.sqrt(2.0 * np.log(2.0))
+
+
+def _synthetic_frame(sigma: float, beta: float, peak: float, background: float, relative_noise: float,
+                     noise_dn: float, data_max: float, dtype: np.dtype, rng: np.random.Generator
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """A frame (height, width) with one near-horizontal skewed stripe and the true centre row
+    (f = 0) of each column."""
+    H = int(np.ceil(16.0 * sigma)) + 24
+    col = np.arange(SYNTH_COLUMNS)
+    centre = H / 2.0 + 0.37 * col / SYNTH_COLUMNS  # a slow slope: every subpixel phase
+    ss = (np.arange(8) + 0.5) / 8.0 - 0.5  # pixel integration
+    t = np.arange(H)[:, None, None] + ss[None, None, :] - centre[None, :, None]
+    f = t + beta * t * t / sigma
+    E = np.where(np.abs(t) < 6.0 * sigma, np.exp(-0.5 * (f / sigma) ** 2), 0.0).mean(-1)
+    img = background + peak * E * (1.0 + relative_noise * rng.standard_normal(E.shape))
+    img += noise_dn * rng.standard_normal(E.shape)
+    return np.clip(np.round(img), 0, data_max).astype(dtype), centre
+
+
+def skew_response(
+    extract: Callable[[np.ndarray], dict[str, np.ndarray]],
+    widths: np.ndarray,
+    *,
+    peak: float,
+    background: float,
+    relative_noise: float,
+    noise_dn: float,
+    data_max: float,
+    seed: int = 0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The extractor's centre shift per unit skew, as a function of the width it reports.
+
+    ``extract`` takes a frame transposed, (width, height), and returns its centres (``u``:
+    column, ``v``: row, ``width_n``); ``widths`` are the scan's reported widths (``width_n``,
+    px) to cover. Returns (reported width, K) sorted by width: a profile ``f(tau) = f1 tau +
+    f2 tau^2`` puts the centre at ``K f2 / f1`` px along ``tau`` (:func:`response_at` reads it).
+    """
+    w = np.asarray(widths, dtype=np.float64)
+    w = w[np.isfinite(w) & (w > 0)]
+    if w.size == 0:
+        return np.empty(0), np.empty(0)
+    sig = np.unique(np.round(np.quantile(w, [0.005, 0.1, 0.3, 0.5, 0.7, 0.9, 0.995]) / FWHM, 2))
+    sig = sig[sig >= 0.3]
+    dtype = np.dtype(np.uint8 if data_max <= 255 else np.uint16)
+    rng = np.random.default_rng(seed)
+    out_w, out_k = [], []
+    for s in sig:
+        shift, width = [], []
+        for beta in (SKEW_BETA, -SKEW_BETA):
+            img, centre = _synthetic_frame(float(s), beta, peak, background, relative_noise, noise_dn,
+                                           data_max, dtype, rng)
+            c = extract(np.ascontiguousarray(img.T))
+            u = np.round(np.asarray(c["u"])).astype(np.int64)
+            ok = (u >= 0) & (u < SYNTH_COLUMNS)
+            if ok.sum() < SYNTH_COLUMNS // 4:
+                break
+            err = np.asarray(c["v"])[ok] - centre[u[ok]]
+            shift.append(float(np.median(err)))
+            width.append(float(np.nanmedian(np.asarray(c["width_n"])[ok])))
+        if len(shift) == 2 and np.isfinite(width).all():
+            # f2 / f1 = beta / sigma: K = shift / (f2 / f1)
+            out_k.append((shift[0] - shift[1]) / (2.0 * SKEW_BETA / s))
+            out_w.append(float(np.mean(width)))
+    order = np.argsort(out_w)
+    return np.asarray(out_w)[order], np.asarray(out_k)[order]
+
+
+def response_at(widths: np.ndarray, table_w: np.ndarray, table_k: np.ndarray) -> np.ndarray:
+    """K of :func:`skew_response`'s table at reported ``widths``: K / w^2 interpolated (it is
+    nearly constant, K growing as the profile's variance), so that widths beyond the table
+    scale as the profile does instead of taking the end's K."""
+    w = np.asarray(widths, dtype=np.float64)
+    if len(table_w) == 0:
+        return np.full(w.shape, np.nan)
+    return np.interp(w, table_w, table_k / table_w**2) * w * w
+
+
+_BITS = 21  # per axis of a cell key: +-2^20 cells of 0.25 mm is +-262 m around the base
+_HALF = 1 << (_BITS - 1)
+
+
+def cell_keys(points: np.ndarray, cell_mm: float) -> np.ndarray:
+    """One int64 key per point: its cell of a grid of ``cell_mm`` fixed in the base frame."""
+    k = np.floor(np.asarray(points, dtype=np.float64) / cell_mm).astype(np.int64) + _HALF
+    np.clip(k, 0, (1 << _BITS) - 1, out=k)
+    return (k[:, 0] << (2 * _BITS)) | (k[:, 1] << _BITS) | k[:, 2]
+
+
+class CellSums:
+    """Points summed per cell, a batch at a time: the scan's shape without holding its points."""
+
+    def __init__(self, cell_mm: float = 0.25, batch: int = 4_000_000):
+        self.cell_mm = cell_mm
+        self.keys = np.empty(0, np.int64)
+        self.sums = np.empty((0, 3))
+        self.counts = np.empty(0, np.int64)
+        self._pending: list[np.ndarray] = []
+        self._n = 0
+        self._batch = batch
+
+    def add(self, points: np.ndarray) -> None:
+        """Add points (N, 3) in the base frame."""
+        self._pending.append(np.asarray(points, dtype=np.float64))
+        self._n += len(points)
+        if self._n >= self._batch:
+            self._merge()
+
+    def _merge(self) -> None:
+        if not self._pending:
+            return
+        p = np.concatenate(self._pending)
+        self._pending, self._n = [], 0
+        k = np.concatenate([self.keys, cell_keys(p, self.cell_mm)])
+        keys, inv = np.unique(k, return_inverse=True)
+        sums = np.stack([np.bincount(inv, weights=np.concatenate([self.sums[:, i], p[:, i]]),
+                                     minlength=len(keys)) for i in range(3)], 1)
+        w = np.concatenate([self.counts, np.ones(len(p), np.int64)])
+        counts = np.bincount(inv, weights=w, minlength=len(keys)).astype(np.int64)
+        self.keys, self.sums, self.counts = keys, sums, counts
+
+    def shape(self, **kw: Any) -> SurfaceShape:
+        """:func:`surface_shape` of the points added."""
+        self._merge()
+        return _shape_of_cells(self.cell_mm, self.keys, self.sums / np.maximum(self.counts, 1)[:, None],
+                               self.counts, **kw)
+
+
+@dataclass(frozen=True)
+class SurfaceShape:
+    """The local shape of a scanned surface, per cell of a grid over it (base frame)."""
+
+    cell_mm: float
+    keys: np.ndarray  # (M,) sorted cell keys (:func:`cell_keys`)
+    normal: np.ndarray  # (M, 3) unit normals
+    e1: np.ndarray  # (M, 3) tangent basis
+    e2: np.ndarray  # (M, 3)
+    second: np.ndarray  # (M, 3) second fundamental form (s11, s12, s22) in 1/mm, along normal
+    ok: np.ndarray  # (M,) bool: enough neighbours to tell the shape
+
+    def cell_of(self, points: np.ndarray) -> np.ndarray:
+        """Index into the cells of each point (-1 where its cell holds no shape)."""
+        key = cell_keys(points, self.cell_mm)
+        if len(self.keys) == 0:
+            return np.full(len(key), -1)
+        i = np.clip(np.searchsorted(self.keys, key), 0, len(self.keys) - 1)
+        return np.where(self.keys[i] == key, i, -1)
+
+    def curvature(self) -> np.ndarray:
+        """The larger principal curvature (absolute, 1/mm) of each cell."""
+        s = self.second
+        return np.abs(0.5 * (s[:, 0] + s[:, 2])) + np.sqrt(0.25 * (s[:, 0] - s[:, 2]) ** 2 + s[:, 1] ** 2)
+
+
+def surface_shape(points: np.ndarray, *, cell_mm: float = 0.25, radius_mm: float = 2.5,
+                  neighbours: int = 96, min_cells: int = 12) -> SurfaceShape:
+    """Normal and second fundamental form of the surface through ``points`` (N, 3), per cell.
+
+    The points are averaged per cell of ``cell_mm``; around each cell a weighted quadric
+    ``h = a x^2 + b x y + c y^2 + d x + e y + g`` (``x, y`` along the cell's principal
+    directions, ``h`` along its normal) is fitted to the cell centroids within ``radius_mm``.
+    Where the neighbours lie nearly on one line (a lone stripe), the umbilic quadric
+    ``a (x^2 + y^2) + ...`` is fitted instead: its one curvature is the line's.
+    :class:`CellSums` does the same for a scan too long to hold.
+    """
+    acc = CellSums(cell_mm)
+    acc.add(points)
+    return acc.shape(radius_mm=radius_mm, neighbours=neighbours, min_cells=min_cells)
+
+
+def _shape_of_cells(cell_mm: float, keys: np.ndarray, cen: np.ndarray, cnt: np.ndarray, *,
+                    radius_mm: float = 2.5, neighbours: int = 96, min_cells: int = 12) -> SurfaceShape:
+    M = len(keys)
+    normal = np.zeros((M, 3))
+    e1 = np.zeros((M, 3))
+    e2 = np.zeros((M, 3))
+    second = np.zeros((M, 3))
+    ok = np.zeros(M, dtype=bool)
+    if M == 0:
+        return SurfaceShape(cell_mm, keys, normal, e1, e2, second, ok)
+    tree = cKDTree(cen)
+    K = min(neighbours, M)
+    for a in range(0, M, BLOCK):
+        b = min(a + BLOCK, M)
+        d, j = tree.query(cen[a:b], k=K, distance_upper_bound=radius_mm)
+        d, j = np.atleast_2d(d), np.atleast_2d(j)
+        valid = j < M
+        jj = np.where(valid, j, 0)
+        Q = cen[jj]  # (B, K, 3)
+        wt = np.where(valid, cnt[jj] * np.exp(-0.5 * (d / (0.5 * radius_mm)) ** 2), 0.0)
+        sw = wt.sum(1)
+        mean = np.einsum("bk,bki->bi", wt, Q) / np.maximum(sw, 1e-300)[:, None]
+        D = Q - mean[:, None, :]
+        C = np.einsum("bk,bki,bkj->bij", wt, D, D) / np.maximum(sw, 1e-300)[:, None, None]
+        ev, V = np.linalg.eigh(C)  # ascending: normal = smallest
+        n0, t2, t1 = V[:, :, 0], V[:, :, 1], V[:, :, 2]
+        R = Q - cen[a:b, None, :]
+        x = np.einsum("bki,bi->bk", R, t1)
+        y = np.einsum("bki,bi->bk", R, t2)
+        h = np.einsum("bki,bi->bk", R, n0)
+        one = np.ones_like(x)
+        full = np.stack([x * x, x * y, y * y, x, y, one], -1)
+        umb = np.stack([x * x + y * y, x, y, one], -1)
+        coef_f = _weighted_lstsq(full, h, wt)
+        coef_u = _weighted_lstsq(umb, h, wt)
+        # the minor tangent spread over the major: below 0.15 the neighbours are one line
+        two_d = ev[:, 1] > (0.15**2) * ev[:, 2]
+        s11 = np.where(two_d, 2 * coef_f[:, 0], 2 * coef_u[:, 0])
+        s12 = np.where(two_d, coef_f[:, 1], 0.0)
+        s22 = np.where(two_d, 2 * coef_f[:, 2], 2 * coef_u[:, 0])
+        gx = np.where(two_d, coef_f[:, 3], coef_u[:, 1])
+        gy = np.where(two_d, coef_f[:, 4], coef_u[:, 2])
+        nn = n0 - gx[:, None] * t1 - gy[:, None] * t2  # the fit's tilt of the tangent plane
+        nn /= np.linalg.norm(nn, axis=1, keepdims=True)
+        normal[a:b] = nn
+        # re-orthogonalise the tangent basis on the tilted normal (second order: kept as is)
+        u1 = t1 - np.einsum("bi,bi->b", t1, nn)[:, None] * nn
+        u1 /= np.linalg.norm(u1, axis=1, keepdims=True)
+        e1[a:b] = u1
+        e2[a:b] = np.cross(nn, u1)
+        second[a:b] = np.stack([s11, s12, s22], 1)
+        ok[a:b] = (valid.sum(1) >= min_cells) & np.isfinite(second[a:b]).all(1)
+    return SurfaceShape(cell_mm, keys, normal, e1, e2, second, ok)
+
+
+
+
+def _weighted_lstsq(A: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Per row b: argmin_c sum_k w (A c - y)^2, for A (B, K, P); NaN where singular."""
+    N = np.einsum("bk,bkp,bkq->bpq", w, A, A)
+    r = np.einsum("bk,bkp,bk->bp", w, A, y)
+    P = A.shape[-1]
+    scale = np.sqrt(np.abs(np.einsum("bpp->bp", N))) + 1e-300
+    Ns = N / scale[:, :, None] / scale[:, None, :]
+    out = np.full((len(A), P), np.nan)
+    good = np.linalg.cond(Ns) < 1e10
+    if good.any():
+        out[good] = np.linalg.solve(Ns[good], (r / scale)[good][..., None])[..., 0] / scale[good]
+    return out
+
+
+def _hit(camera: Any, uv: np.ndarray, P0: np.ndarray, N: np.ndarray, e1: np.ndarray,
+         e2: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where each pixel's ray meets the quadric through P0 (normal N, tangents e1, e2, second
+    form s = (s11, s12, s22)), and the quadric's unit normal there."""
+    r = camera.rays(uv)
+    rn = np.einsum("ij,ij->i", r, N)
+    t = np.einsum("ij,ij->i", P0, N) / rn  # the tangent plane's hit, then Newton on the quadric
+    r1 = np.einsum("ij,ij->i", r, e1)
+    r2 = np.einsum("ij,ij->i", r, e2)
+    for _ in range(4):
+        w = t[:, None] * r - P0
+        x = np.einsum("ij,ij->i", w, e1)
+        y = np.einsum("ij,ij->i", w, e2)
+        h = np.einsum("ij,ij->i", w, N)
+        F = h - 0.5 * (s[:, 0] * x * x + 2 * s[:, 1] * x * y + s[:, 2] * y * y)
+        dF = rn - (s[:, 0] * x + s[:, 1] * y) * r1 - (s[:, 1] * x + s[:, 2] * y) * r2
+        t = t - F / dF
+    w = t[:, None] * r - P0
+    x = np.einsum("ij,ij->i", w, e1)
+    y = np.einsum("ij,ij->i", w, e2)
+    Nh = N - (s[:, 0] * x + s[:, 1] * y)[:, None] * e1 - (s[:, 1] * x + s[:, 2] * y)[:, None] * e2
+    return t[:, None] * r, Nh / np.linalg.norm(Nh, axis=1, keepdims=True)
+
+
+def stripe_gradient(camera: Any, normal: np.ndarray, d: float, uv: np.ndarray, p_cam: np.ndarray,
+                    N: np.ndarray, e1: np.ndarray, e2: np.ndarray, second: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """|grad f| (mm of sheet offset per px) at each centre and the stripe's unit image normal
+    (N, 2), towards +f: the profile's sigma across the stripe is ``sigma_f / |grad f|``."""
+    uv = np.asarray(uv, dtype=np.float64)
+    n = np.asarray(normal, dtype=np.float64)
+    g = np.full(len(uv), np.nan)
+    ph = np.zeros_like(uv)
+    h = 1.0
+    du, dv = np.array([h, 0.0]), np.array([0.0, h])
+    for a in range(0, len(uv), BLOCK):
+        b = min(a + BLOCK, len(uv))
+        shape = (p_cam[a:b], N[a:b], e1[a:b], e2[a:b], second[a:b])
+        q = uv[a:b]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            fu = (_offset(camera, q + du, shape, n, d) - _offset(camera, q - du, shape, n, d)) / (2 * h)
+            fv = (_offset(camera, q + dv, shape, n, d) - _offset(camera, q - dv, shape, n, d)) / (2 * h)
+            g[a:b] = np.hypot(fu, fv)
+            ph[a:b] = np.stack([fu, fv], 1) / g[a:b, None]
+    return g, ph
+
+
+def _offset(camera: Any, uv: np.ndarray, shape: tuple, n: np.ndarray, d: float) -> np.ndarray:
+    X, _ = _hit(camera, uv, *shape)
+    return X @ n + d
+
+
+def centre_shift(camera: Any, normal: np.ndarray, d: float, uv: np.ndarray, p_cam: np.ndarray,
+                 N: np.ndarray, e1: np.ndarray, e2: np.ndarray, second: np.ndarray, *,
+                 sigma_f: float, ratio: np.ndarray, along: np.ndarray | None = None,
+                 emitter: np.ndarray | None = None,
+                 gradient: tuple[np.ndarray, np.ndarray] | None = None,
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The bias of each stripe centre ``uv`` (N, 2) px of the sheet (``normal``, ``d``, sigma
+    ``sigma_f`` mm across its thickness; camera frame) on the surface shape ``N, e1, e2,
+    second`` (camera frame) through ``p_cam``.
+
+    ``ratio`` (per centre) is the extractor's shift per unit skew over the profile's squared
+    width, K / w^2 of :func:`skew_response` at the reported width; ``along`` (N, 2) the image
+    direction each profile was taken along (a column: (0, 1)), where NaN or None: across the
+    stripe. Along a column ``f`` also bends with the stripe's own curve in the image, which
+    this sees too; the profile there is ``1 / |cos|`` as long. With the laser's ``emitter``
+    (camera frame), Lambert's cosine across the band adds its slope: a Gaussian times
+    ``1 + s tau`` peaks ``s sigma^2`` further on. Returns (bias px along the direction, the
+    direction (N, 2), the stripe's image normal (N, 2)): the centre the extractor would have
+    found on a flat surface is ``uv - bias * direction``. NaN bias where the shape gives no
+    profile. ``gradient``: :func:`stripe_gradient`'s result for these centres, if at hand.
+    """
+    uv = np.asarray(uv, dtype=np.float64)
+    n = np.asarray(normal, dtype=np.float64)
+    e = None if emitter is None else np.asarray(emitter, dtype=np.float64)
+    g, ph = gradient if gradient is not None else stripe_gradient(camera, n, d, uv, p_cam, N, e1, e2, second)
+    bias = np.full(len(uv), np.nan)
+    direction = np.zeros_like(uv)
+    h = 1.0  # px: f is quadratic over the profile, the step only has to resolve it
+    for a in range(0, len(uv), BLOCK):
+        b = min(a + BLOCK, len(uv))
+        shape = (p_cam[a:b], N[a:b], e1[a:b], e2[a:b], second[a:b])
+        q = uv[a:b]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            p = ph[a:b] if along is None else np.where(np.isfinite(along[a:b]), along[a:b], ph[a:b])
+            cos = np.einsum("ij,ij->i", p, ph[a:b])
+            var = (sigma_f / (g[a:b] * cos)) ** 2  # the sheet's profile along p, px^2
+            X0, _ = _hit(camera, q, *shape)
+            Xp, Np = _hit(camera, q + h * p, *shape)
+            Xm, Nm = _hit(camera, q - h * p, *shape)
+            f0, fp, fm = X0 @ n + d, Xp @ n + d, Xm @ n + d
+            out = ratio[a:b] * FWHM**2 * var * (fp + fm - 2 * f0) / (2 * h * h) / ((fp - fm) / (2 * h))
+            if e is not None:
+                out = out + var * (_log_cos(Xp, Np, e) - _log_cos(Xm, Nm, e)) / (2 * h)
+            bias[a:b] = out
+        direction[a:b] = np.where(np.isfinite(p), p, 0.0)
+    return bias, direction, ph
+
+
+def _log_cos(X: np.ndarray, Nh: np.ndarray, emitter: np.ndarray) -> np.ndarray:
+    ell = X - emitter
+    return np.log(np.abs(np.einsum("ij,ij->i", ell, Nh)) / np.linalg.norm(ell, axis=1))
+
+
+def sheet_sigma(samples: dict[str, tuple[np.ndarray, np.ndarray]]) -> tuple[dict[str, float], float]:
+    """Each laser's sheet sigma across its thickness (mm) and the camera's blur (px), from
+    centres on any surface: a profile's variance is ``(sigma_f / g)^2 + sigma_0^2`` with ``g =
+    |grad f|`` (:func:`stripe_gradient`); ``samples[laser] = (g, reported width / FWHM)``.
+
+    One blur for all lasers (the camera's), one sheet per laser, fitted by least squares and
+    again without the centres far off the fit (merged or clipped stripes). A sheet that the
+    widths do not resolve from the blur gets 0 (its centres are left as found).
+    """
+    names = [k for k, (g, w) in samples.items() if len(g)]
+    with np.errstate(divide="ignore"):
+        xs = [1.0 / np.asarray(samples[k][0], dtype=np.float64) ** 2 for k in names]
+    ys = [np.asarray(samples[k][1], dtype=np.float64) ** 2 for k in names]
+    ok = [np.isfinite(x) & np.isfinite(y) for x, y in zip(xs, ys, strict=True)]
+    xs = [x[o] for x, o in zip(xs, ok, strict=True)]
+    ys = [y[o] for y, o in zip(ys, ok, strict=True)]
+    if sum(x.size for x in xs) < 50:
+        return {k: 0.0 for k in samples}, float("nan")
+    x = np.concatenate(xs)
+    y = np.concatenate(ys)
+    which = np.concatenate([np.full(v.size, i) for i, v in enumerate(xs)])
+    A = np.zeros((x.size, len(names) + 1))
+    A[np.arange(x.size), which] = x
+    A[:, -1] = 1.0
+    keep = np.ones(x.size, dtype=bool)
+    coef = np.zeros(len(names) + 1)
+    for _ in range(4):
+        coef = np.linalg.lstsq(A[keep], y[keep], rcond=None)[0]
+        r = y - A @ coef
+        mad = 1.4826 * np.median(np.abs(r[keep] - np.median(r[keep])))
+        keep = np.abs(r) <= 3.0 * max(mad, 1e-9)
+    blur2 = max(float(coef[-1]), 0.0)
+    out = {k: 0.0 for k in samples}
+    for i, k in enumerate(names):
+        m = keep & (which == i)
+        # with the blur fixed, each sheet from its own centres (robust to a narrow spread of g)
+        slope = float(np.median((y[m] - blur2) / x[m])) if m.any() else 0.0
+        out[k] = float(np.sqrt(slope)) if slope > 0 else 0.0
+    return out, float(np.sqrt(blur2))
