@@ -84,6 +84,14 @@ def page_scan(m: dict[str, Any], name: str, plots: dict[str, Any]) -> Figure:
                       f"{half_amplitude_columns(int(win)):.1f}-column ripple)"]
         else:
             lines.append(f"centres: {name}, each column on its own")
+    sc = tri.get("sheet_curvature") or {}
+    if sc.get("points_moved"):
+        sig = ", ".join(f"{k} {v * 1e3:.0f}" for k, v in (sc.get("sheet_sigma_mm") or {}).items())
+        lines += [f"sheet on curved surfaces: {fmt(sc['points_moved'])} centres moved, median "
+                  f"{fmt(sc.get('median_shift_px'), '', 3)} px,",
+                  f"  95 % within {fmt(sc.get('p95_shift_px'), '', 3)} px (sheet sigma {sig} µm)"]
+    elif sc.get("skipped"):
+        lines.append(f"sheet on curved surfaces: not corrected ({sc['skipped']})")
     by_order = (tri.get("counts") or {}).get("labelled_by_order")
     if by_order:  # a scan without A or B frames
         lines += [f"labels: no A or B frames; AB frames told apart by the order of the cross "
