@@ -117,6 +117,7 @@ def test_surface_shape_of_a_ball_and_a_plane():
     acc.add(flat[20000:])
     one = surface_shape(flat)
     two = acc.shape()
+    two.ensure()
     np.testing.assert_array_equal(one.keys, two.keys)
     np.testing.assert_allclose(one.second, two.second, atol=1e-9)
     assert np.quantile(one.curvature()[one.ok], 0.9) < 0.01

@@ -32,7 +32,6 @@ calibration here measures.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -53,6 +52,7 @@ __all__ = [
 SKEW_BETA = 0.02  # skew of the synthetic profiles: f = t + beta t^2 / sigma (linear response)
 SYNTH_COLUMNS = 384  # columns per synthetic frame
 BLOCK = 8192  # centres (or points) handled at a time: bounded memory on long scans
+CELL_MM = 0.5  # the grid of the surface's shape: a sheet's band is 0.1-1 mm wide
 FWHM = 2.0 * np.sqrt(2.0 * np.log(2.0))
 
 
@@ -145,7 +145,7 @@ def cell_keys(points: np.ndarray, cell_mm: float) -> np.ndarray:
 class CellSums:
     """Points summed per cell, a batch at a time: the scan's shape without holding its points."""
 
-    def __init__(self, cell_mm: float = 0.25, batch: int = 4_000_000):
+    def __init__(self, cell_mm: float = CELL_MM, batch: int = 4_000_000):
         self.cell_mm = cell_mm
         self.keys = np.empty(0, np.int64)
         self.sums = np.empty((0, 3))
@@ -175,23 +175,34 @@ class CellSums:
         self.keys, self.sums, self.counts = keys, sums, counts
 
     def shape(self, **kw: Any) -> SurfaceShape:
-        """:func:`surface_shape` of the points added."""
+        """The shape of the points added (:func:`surface_shape`), each cell fitted when asked."""
         self._merge()
-        return _shape_of_cells(self.cell_mm, self.keys, self.sums / np.maximum(self.counts, 1)[:, None],
-                               self.counts, **kw)
+        return SurfaceShape(self.cell_mm, self.keys, self.sums / np.maximum(self.counts, 1)[:, None],
+                            self.counts, **kw)
 
 
-@dataclass(frozen=True)
 class SurfaceShape:
-    """The local shape of a scanned surface, per cell of a grid over it (base frame)."""
+    """The local shape of a scanned surface, per cell of a grid over it (base frame).
 
-    cell_mm: float
-    keys: np.ndarray  # (M,) sorted cell keys (:func:`cell_keys`)
-    normal: np.ndarray  # (M, 3) unit normals
-    e1: np.ndarray  # (M, 3) tangent basis
-    e2: np.ndarray  # (M, 3)
-    second: np.ndarray  # (M, 3) second fundamental form (s11, s12, s22) in 1/mm, along normal
-    ok: np.ndarray  # (M,) bool: enough neighbours to tell the shape
+    A cell's shape is fitted when first asked for (:meth:`ensure`): a long scan's stage needs
+    it only where the sheet is thick enough for the correction to matter.
+    """
+
+    def __init__(self, cell_mm: float, keys: np.ndarray, centroids: np.ndarray, counts: np.ndarray,
+                 radius_mm: float = 2.5, neighbours: int = 48, min_cells: int = 12):
+        self.cell_mm = cell_mm
+        self.keys = keys  # (M,) sorted cell keys (:func:`cell_keys`)
+        self._cen = centroids
+        self._cnt = counts
+        self._radius, self._k, self._min = radius_mm, neighbours, min_cells
+        M = len(keys)
+        self._tree = cKDTree(centroids) if M else None
+        self.normal = np.zeros((M, 3))  # unit normals
+        self.e1 = np.zeros((M, 3))  # tangent basis
+        self.e2 = np.zeros((M, 3))
+        self.second = np.zeros((M, 3))  # second fundamental form (s11, s12, s22), 1/mm, along normal
+        self.ok = np.zeros(M, dtype=bool)  # enough neighbours to tell the shape
+        self._done = np.zeros(M, dtype=bool)
 
     def cell_of(self, points: np.ndarray) -> np.ndarray:
         """Index into the cells of each point (-1 where its cell holds no shape)."""
@@ -201,43 +212,33 @@ class SurfaceShape:
         i = np.clip(np.searchsorted(self.keys, key), 0, len(self.keys) - 1)
         return np.where(self.keys[i] == key, i, -1)
 
+    @property
+    def fitted(self) -> int:
+        """Cells whose shape has been fitted so far."""
+        return int(self._done.sum())
+
     def curvature(self) -> np.ndarray:
-        """The larger principal curvature (absolute, 1/mm) of each cell."""
+        """The larger principal curvature (absolute, 1/mm) of each cell (0 where not fitted)."""
         s = self.second
         return np.abs(0.5 * (s[:, 0] + s[:, 2])) + np.sqrt(0.25 * (s[:, 0] - s[:, 2]) ** 2 + s[:, 1] ** 2)
 
+    def ensure(self, cells: np.ndarray | None = None) -> None:
+        """Fit the shape of ``cells`` (indices; None: all) where not yet fitted."""
+        todo = np.arange(len(self.keys)) if cells is None else np.unique(np.asarray(cells, np.int64))
+        todo = todo[(todo >= 0) & ~self._done[todo]] if todo.size else todo
+        for a in range(0, todo.size, BLOCK):
+            self._fit(todo[a:a + BLOCK])
 
-def surface_shape(points: np.ndarray, *, cell_mm: float = 0.25, radius_mm: float = 2.5,
-                  neighbours: int = 96, min_cells: int = 12) -> SurfaceShape:
-    """Normal and second fundamental form of the surface through ``points`` (N, 3), per cell.
-
-    The points are averaged per cell of ``cell_mm``; around each cell a weighted quadric
-    ``h = a x^2 + b x y + c y^2 + d x + e y + g`` (``x, y`` along the cell's principal
-    directions, ``h`` along its normal) is fitted to the cell centroids within ``radius_mm``.
-    Where the neighbours lie nearly on one line (a lone stripe), the umbilic quadric
-    ``a (x^2 + y^2) + ...`` is fitted instead: its one curvature is the line's.
-    :class:`CellSums` does the same for a scan too long to hold.
-    """
-    acc = CellSums(cell_mm)
-    acc.add(points)
-    return acc.shape(radius_mm=radius_mm, neighbours=neighbours, min_cells=min_cells)
-
-
-def _shape_of_cells(cell_mm: float, keys: np.ndarray, cen: np.ndarray, cnt: np.ndarray, *,
-                    radius_mm: float = 2.5, neighbours: int = 96, min_cells: int = 12) -> SurfaceShape:
-    M = len(keys)
-    normal = np.zeros((M, 3))
-    e1 = np.zeros((M, 3))
-    e2 = np.zeros((M, 3))
-    second = np.zeros((M, 3))
-    ok = np.zeros(M, dtype=bool)
-    if M == 0:
-        return SurfaceShape(cell_mm, keys, normal, e1, e2, second, ok)
-    tree = cKDTree(cen)
-    K = min(neighbours, M)
-    for a in range(0, M, BLOCK):
-        b = min(a + BLOCK, M)
-        d, j = tree.query(cen[a:b], k=K, distance_upper_bound=radius_mm)
+    def _fit(self, idx: np.ndarray) -> None:
+        cen, cnt, M = self._cen, self._cnt, len(self.keys)
+        radius_mm = self._radius
+        K = min(self._k, M)
+        a, b = 0, idx.size
+        normal, e1, e2, second, ok = (np.zeros((b, 3)), np.zeros((b, 3)), np.zeros((b, 3)),
+                                      np.zeros((b, 3)), np.zeros(b, dtype=bool))
+        tree = self._tree
+        q = cen[idx]
+        d, j = tree.query(q, k=K, distance_upper_bound=radius_mm)
         d, j = np.atleast_2d(d), np.atleast_2d(j)
         valid = j < M
         jj = np.where(valid, j, 0)
@@ -249,7 +250,7 @@ def _shape_of_cells(cell_mm: float, keys: np.ndarray, cen: np.ndarray, cnt: np.n
         C = np.einsum("bk,bki,bkj->bij", wt, D, D) / np.maximum(sw, 1e-300)[:, None, None]
         ev, V = np.linalg.eigh(C)  # ascending: normal = smallest
         n0, t2, t1 = V[:, :, 0], V[:, :, 1], V[:, :, 2]
-        R = Q - cen[a:b, None, :]
+        R = Q - q[:, None, :]
         x = np.einsum("bki,bi->bk", R, t1)
         y = np.einsum("bki,bi->bk", R, t2)
         h = np.einsum("bki,bi->bk", R, n0)
@@ -274,10 +275,29 @@ def _shape_of_cells(cell_mm: float, keys: np.ndarray, cen: np.ndarray, cnt: np.n
         e1[a:b] = u1
         e2[a:b] = np.cross(nn, u1)
         second[a:b] = np.stack([s11, s12, s22], 1)
-        ok[a:b] = (valid.sum(1) >= min_cells) & np.isfinite(second[a:b]).all(1)
-    return SurfaceShape(cell_mm, keys, normal, e1, e2, second, ok)
+        ok[a:b] = (valid.sum(1) >= self._min) & np.isfinite(second[a:b]).all(1)
+        self.normal[idx], self.e1[idx], self.e2[idx], self.second[idx] = normal, e1, e2, second
+        self.ok[idx] = ok
+        self._done[idx] = True
 
 
+def surface_shape(points: np.ndarray, *, cell_mm: float = CELL_MM, radius_mm: float = 2.5,
+                  neighbours: int = 48, min_cells: int = 12) -> SurfaceShape:
+    """Normal and second fundamental form of the surface through ``points`` (N, 3), per cell.
+
+    The points are averaged per cell of ``cell_mm``; around each cell a weighted quadric
+    ``h = a x^2 + b x y + c y^2 + d x + e y + g`` (``x, y`` along the cell's principal
+    directions, ``h`` along its normal) is fitted to the ``neighbours`` nearest cell means
+    within ``radius_mm``. Where they lie nearly on one line (a lone stripe), the umbilic
+    quadric ``a (x^2 + y^2) + ...`` is fitted instead: its one curvature is the line's.
+    Every cell is fitted here; :class:`CellSums` gives the same shape for a scan too long to
+    hold, fitted where asked.
+    """
+    acc = CellSums(cell_mm)
+    acc.add(points)
+    sh = acc.shape(radius_mm=radius_mm, neighbours=neighbours, min_cells=min_cells)
+    sh.ensure()
+    return sh
 
 
 def _weighted_lstsq(A: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:

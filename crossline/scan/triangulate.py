@@ -410,6 +410,7 @@ def _median(values: Any, default: float) -> float:
 
 
 KAPPA_MIN = 0.01  # 1/mm: a flat plate's cells scatter up to ~0.007 with the points' noise
+KAPPA_MAX = 2.0  # 1/mm: a surface curved more than this is finer than the shape's cells
 BIAS_FLOOR_MM = 0.0005  # surfaces flatter than gives this bias keep their centres
 SHEET_SAMPLE = 60000  # centres whose widths tell the sheet's thickness from the blur
 
@@ -431,14 +432,13 @@ def correct_points_file(
     t0 = time.perf_counter()
     shape = cells.shape()
     del cells
-    kappa = shape.curvature()
     pf = pq.ParquetFile(first)
     levels, noise = smeta.get("levels") or {}, smeta.get("noise") or {}
     background = _median(levels.get("background"), 0.0)
     data_max = float((smeta.get("data_range") or {}).get("max") or 255.0)
     extractor, params = smeta.get("extractor"), smeta.get("params")
-    info: dict[str, Any] = {"enabled": True, "cells": len(kappa)}
-    curved = np.zeros(len(kappa), dtype=bool)
+    info: dict[str, Any] = {"enabled": True, "cells": len(shape.keys)}
+    kmin = np.inf
     sheet: dict[str, tuple[float, float]] = {}
     if extractor is None or not isinstance(params, dict):
         info["skipped"] = "the stripes file does not name its extractor and parameters"
@@ -466,23 +466,24 @@ def correct_points_file(
             # curvature that the points' noise gives a flat surface
             thick = max((v[0] for v in sheet.values()), default=0.0)
             kmin = max(KAPPA_MIN, BIAS_FLOOR_MM / (3.0 * thick**2)) if thick > 0 else np.inf
-            curved = shape.ok & (kappa > kmin)
+            if not kmin <= KAPPA_MAX:
+                kmin = np.inf  # the sheet is too thin to matter on any surface the cells resolve
             info["curvature_min_per_mm"] = round(float(kmin), 5) if np.isfinite(kmin) else None
-            info["curved_cells"] = int(curved.sum())
     moved, shifts = 0, []
     with pq.ParquetWriter(out, POINTS_SCHEMA, compression="zstd",
                           use_dictionary=["frame", "laser", "lasers", "flags"],
                           write_statistics=["frame"]) as w:
         for g in range(pf.num_row_groups):
             t = pf.read_row_group(g)
-            if "skipped" not in info and any(v[0] > 0 for v in sheet.values()):
+            if "skipped" not in info and np.isfinite(kmin):
                 t, sh = _corrected_group(t, cam, planes, T_base_cam, by_number, sorted_frames,
-                                         shape, curved, wk, kk, across, sheet)
+                                         shape, kmin, wk, kk, across, sheet)
                 moved += sh.size
                 shifts.append(sh)
             w.write_table(t, row_group_size=t.num_rows)
         sh = np.abs(np.concatenate(shifts)) if shifts else np.empty(0)
         info.update({
+            "cells_fitted": int(shape.fitted),
             "points_moved": int(moved),
             "median_shift_px": float(np.median(sh)) if sh.size else 0.0,
             "p95_shift_px": float(np.quantile(sh, 0.95)) if sh.size else 0.0,
@@ -528,6 +529,7 @@ def _sheet_sigmas(pf: pq.ParquetFile, cam: Camera, planes: LaserPlanes, T_base_c
         lab = t.column("laser").to_numpy(zero_copy_only=False).astype(str)[rows]
         uv = np.stack([t.column("u").to_numpy()[rows], t.column("v").to_numpy()[rows]], 1)
         wn = t.column("width_n").to_numpy()[rows].astype(np.float64)
+        shape.ensure(cell[cell >= 0])
         ok = cell >= 0
         ok[ok] = shape.ok[cell[ok]]
         R = T_base_cam[fpos, :3, :3]
@@ -544,7 +546,7 @@ def _sheet_sigmas(pf: pq.ParquetFile, cam: Camera, planes: LaserPlanes, T_base_c
 
 
 def _corrected_group(t: pa.Table, cam: Camera, planes: LaserPlanes, T_base_cam: np.ndarray,
-                     by_number: np.ndarray, sorted_frames: np.ndarray, shape: Any, curved: np.ndarray,
+                     by_number: np.ndarray, sorted_frames: np.ndarray, shape: Any, kmin: float,
                      wk: np.ndarray, kk: np.ndarray, across: float,
                      sheet: dict[str, tuple[float, float]]) -> tuple[pa.Table, np.ndarray]:
     """One row group with the centres on curved surfaces corrected; (table, their shifts px)."""
@@ -558,7 +560,10 @@ def _corrected_group(t: pa.Table, cam: Camera, planes: LaserPlanes, T_base_cam: 
     wn = t.column("width_n").to_numpy().astype(np.float64)
     axis = t.column("axis").to_numpy()
     use = (cell >= 0) & np.isfinite(wn) & np.isfinite(pc).all(1)
-    use[use] = curved[cell[use]]
+    shape.ensure(cell[use])
+    s = shape.second[cell[use]]
+    kappa = np.abs(0.5 * (s[:, 0] + s[:, 2])) + np.sqrt(0.25 * (s[:, 0] - s[:, 2]) ** 2 + s[:, 1] ** 2)
+    use[use] = shape.ok[cell[use]] & (kappa > kmin)
     R = T_base_cam[fpos, :3, :3]  # base <- cam of each point's frame
     bias = np.full(n_rows, np.nan)
     scale = np.ones(n_rows)  # px along the column (row) per px along the profile
