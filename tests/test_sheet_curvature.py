@@ -11,7 +11,6 @@ import pytest
 
 from crossline.camera import Camera
 from crossline.scan.sheet_curvature import (
-    FWHM,
     CellSums,
     centre_shift,
     sheet_sigma,
@@ -90,7 +89,7 @@ def test_centre_shift_is_the_traced_profile_centroid(lambert):
     N, e1, e2, second = _sphere_shape(P)
     bias, direction, _ = centre_shift(
         CAM, PLANE_N, d, np.column_stack([u, v0]), P, N, e1, e2, second, sigma_f=sigma_f,
-        ratio=np.full(len(u), -3.0 / FWHM**2), along=np.tile([0.0, 1.0], (len(u), 1)),
+        k=np.full(len(u), -3.0), along=np.tile([0.0, 1.0], (len(u), 1)),
         emitter=EMITTER if lambert else None)
     np.testing.assert_array_equal(direction, np.tile([0.0, 1.0], (len(u), 1)))
     traced = vc - v0
@@ -142,28 +141,27 @@ def test_sheet_sigma_from_widths():
 
 def test_skew_response_predicts_the_gaussian_fit():
     """The table measured at one skew predicts the speckle-weighted Gaussian fit's shift at
-    another skew and width (a profile it was not measured on)."""
+    another skew and sheet width (a profile it was not measured on), blurred alike."""
+    from crossline.scan.sheet_curvature import _synthetic_frame
+
     params = {"threshold": 0.1, "min_width": 2.0, "max_width": 30.0, "fit_pad": 6,
               "relative_noise": None, "fit_across": True, "min_peak": 0.17}
     work = _frame_work("gaussian", params, 4095.0)
     kw = {"peak": 2500.0, "background": 80.0, "relative_noise": 0.12, "noise_dn": 3.0,
           "data_max": 4095.0}
-    wk, kk = skew_response(lambda imT: work(0, imT), np.array([6.0, 8.0, 10.0, 12.0]), **kw)
-    assert len(wk) >= 3 and np.all(kk < 0)
-    from crossline.scan.sheet_curvature import _synthetic_frame
-
+    sk, kk = skew_response(lambda imT: work(0, imT), np.array([1.5, 2.5, 4.0, 6.0]), blur=0.8, **kw)
+    assert len(sk) >= 3 and np.all(kk < 0)
     rng = np.random.default_rng(5)
-    sigma, beta = 4.5, 0.012
+    sigma, beta = 3.2, 0.012
     shifts = []
     for b in (beta, -beta):
         img, centre = _synthetic_frame(sigma, b, kw["peak"], kw["background"], kw["relative_noise"],
-                                       kw["noise_dn"], 4095.0, np.dtype(np.uint16), rng)
+                                       kw["noise_dn"], 4095.0, np.dtype(np.uint16), rng, 0.8)
         c = work(0, np.ascontiguousarray(img.T))
         u = np.round(c["u"]).astype(int)
         shifts.append(np.median(c["v"] - centre[u]))
-        width = np.median(c["width_n"])
     measured = (shifts[0] - shifts[1]) / 2
-    predicted = np.interp(width, wk, kk / wk**2) * width**2 * beta / sigma
+    predicted = np.interp(sigma, sk, kk) * sigma**2 * beta / sigma
     assert abs(predicted - measured) < 0.12 * abs(measured)
 
 

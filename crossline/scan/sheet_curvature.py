@@ -42,7 +42,6 @@ __all__ = [
     "SurfaceShape",
     "cell_keys",
     "centre_shift",
-    "response_at",
     "sheet_sigma",
     "skew_response",
     "stripe_gradient",
@@ -57,17 +56,22 @@ FWHM = 2.0 * np.sqrt(2.0 * np.log(2.0))
 
 
 def _synthetic_frame(sigma: float, beta: float, peak: float, background: float, relative_noise: float,
-                     noise_dn: float, data_max: float, dtype: np.dtype, rng: np.random.Generator
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """A frame (height, width) with one near-horizontal skewed stripe and the true centre row
-    (f = 0) of each column."""
-    H = int(np.ceil(16.0 * sigma)) + 24
+                     noise_dn: float, data_max: float, dtype: np.dtype, rng: np.random.Generator,
+                     blur: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """A frame (height, width) with one near-horizontal stripe, a sheet of ``sigma`` px skewed
+    by ``beta`` and blurred by ``blur`` px, and the true centre row (f = 0) of each column."""
+    from scipy.ndimage import gaussian_filter1d
+
+    sub = 8  # samples per pixel: the blur, then the pixel's integration
+    H = int(np.ceil(12.0 * np.hypot(sigma, blur))) + 24
     col = np.arange(SYNTH_COLUMNS)
     centre = H / 2.0 + 0.37 * col / SYNTH_COLUMNS  # a slow slope: every subpixel phase
-    ss = (np.arange(8) + 0.5) / 8.0 - 0.5  # pixel integration
-    t = np.arange(H)[:, None, None] + ss[None, None, :] - centre[None, :, None]
+    t = (np.arange(H * sub)[:, None] + 0.5) / sub - 0.5 - centre[None, :]
     f = t + beta * t * t / sigma
-    E = np.where(np.abs(t) < 6.0 * sigma, np.exp(-0.5 * (f / sigma) ** 2), 0.0).mean(-1)
+    E = np.where(np.abs(t) < 6.0 * sigma, np.exp(-0.5 * (f / sigma) ** 2), 0.0)
+    if blur > 0:
+        E = gaussian_filter1d(E, blur * sub, axis=0, mode="constant")
+    E = E.reshape(H, sub, SYNTH_COLUMNS).mean(1)
     img = background + peak * E * (1.0 + relative_noise * rng.standard_normal(E.shape))
     img += noise_dn * rng.standard_normal(E.shape)
     return np.clip(np.round(img), 0, data_max).astype(dtype), centre
@@ -75,8 +79,9 @@ def _synthetic_frame(sigma: float, beta: float, peak: float, background: float, 
 
 def skew_response(
     extract: Callable[[np.ndarray], dict[str, np.ndarray]],
-    widths: np.ndarray,
+    sigmas: np.ndarray,
     *,
+    blur: float,
     peak: float,
     background: float,
     relative_noise: float,
@@ -84,51 +89,42 @@ def skew_response(
     data_max: float,
     seed: int = 0,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The extractor's centre shift per unit skew, as a function of the width it reports.
+    """The extractor's centre shift per unit skew of the sheet, against the sheet's sigma.
 
     ``extract`` takes a frame transposed, (width, height), and returns its centres (``u``:
-    column, ``v``: row, ``width_n``); ``widths`` are the scan's reported widths (``width_n``,
-    px) to cover. Returns (reported width, K) sorted by width: a profile ``f(tau) = f1 tau +
-    f2 tau^2`` puts the centre at ``K f2 / f1`` px along ``tau`` (:func:`response_at` reads it).
+    column, ``v``: row); ``sigmas`` are the sheet sigmas (px, across the stripe) of the scan's
+    centres, to cover; ``blur`` the camera's (px). Profiles are made as the scan's are: a
+    Gaussian sheet skewed as ``f(tau) = tau + beta tau^2 / sigma``, blurred, integrated over
+    pixels, at the scan's peak, background and noise. Returns (sigma, k) sorted by sigma: a
+    sheet of sigma ``s`` with ``f(tau) = f1 tau + f2 tau^2`` puts the centre at ``k s^2 f2 /
+    f1`` px along ``tau`` (-3 for a centroid, whatever the blur).
     """
-    w = np.asarray(widths, dtype=np.float64)
+    w = np.asarray(sigmas, dtype=np.float64)
     w = w[np.isfinite(w) & (w > 0)]
     if w.size == 0:
         return np.empty(0), np.empty(0)
-    sig = np.unique(np.round(np.quantile(w, [0.005, 0.1, 0.3, 0.5, 0.7, 0.9, 0.995]) / FWHM, 2))
+    sig = np.unique(np.round(np.quantile(w, [0.005, 0.1, 0.3, 0.5, 0.7, 0.9, 0.995]), 2))
     sig = sig[sig >= 0.3]
     dtype = np.dtype(np.uint8 if data_max <= 255 else np.uint16)
     rng = np.random.default_rng(seed)
-    out_w, out_k = [], []
-    for s in sig:
-        shift, width = [], []
+    out_s, out_k = [], []
+    blur = float(blur) if np.isfinite(blur) else 0.0
+    for sg in sig:
+        shift = []
         for beta in (SKEW_BETA, -SKEW_BETA):
-            img, centre = _synthetic_frame(float(s), beta, peak, background, relative_noise, noise_dn,
-                                           data_max, dtype, rng)
+            img, centre = _synthetic_frame(float(sg), beta, peak, background, relative_noise, noise_dn,
+                                           data_max, dtype, rng, blur)
             c = extract(np.ascontiguousarray(img.T))
             u = np.round(np.asarray(c["u"])).astype(np.int64)
             ok = (u >= 0) & (u < SYNTH_COLUMNS)
             if ok.sum() < SYNTH_COLUMNS // 4:
                 break
-            err = np.asarray(c["v"])[ok] - centre[u[ok]]
-            shift.append(float(np.median(err)))
-            width.append(float(np.nanmedian(np.asarray(c["width_n"])[ok])))
-        if len(shift) == 2 and np.isfinite(width).all():
-            # f2 / f1 = beta / sigma: K = shift / (f2 / f1)
-            out_k.append((shift[0] - shift[1]) / (2.0 * SKEW_BETA / s))
-            out_w.append(float(np.mean(width)))
-    order = np.argsort(out_w)
-    return np.asarray(out_w)[order], np.asarray(out_k)[order]
-
-
-def response_at(widths: np.ndarray, table_w: np.ndarray, table_k: np.ndarray) -> np.ndarray:
-    """K of :func:`skew_response`'s table at reported ``widths``: K / w^2 interpolated (it is
-    nearly constant, K growing as the profile's variance), so that widths beyond the table
-    scale as the profile does instead of taking the end's K."""
-    w = np.asarray(widths, dtype=np.float64)
-    if len(table_w) == 0:
-        return np.full(w.shape, np.nan)
-    return np.interp(w, table_w, table_k / table_w**2) * w * w
+            shift.append(float(np.median(np.asarray(c["v"])[ok] - centre[u[ok]])))
+        if len(shift) == 2:
+            # f2 / f1 = beta / sigma: k = shift / (sigma^2 f2 / f1) = shift / (beta sigma)
+            out_k.append((shift[0] - shift[1]) / (2.0 * SKEW_BETA * sg))
+            out_s.append(float(sg))
+    return np.asarray(out_s), np.asarray(out_k)
 
 
 _BITS = 21  # per axis of a cell key: +-2^20 cells of 0.25 mm is +-262 m around the base
@@ -368,7 +364,7 @@ def _offset(camera: Any, uv: np.ndarray, shape: tuple, n: np.ndarray, d: float) 
 
 def centre_shift(camera: Any, normal: np.ndarray, d: float, uv: np.ndarray, p_cam: np.ndarray,
                  N: np.ndarray, e1: np.ndarray, e2: np.ndarray, second: np.ndarray, *,
-                 sigma_f: float, ratio: np.ndarray, along: np.ndarray | None = None,
+                 sigma_f: float, k: np.ndarray, along: np.ndarray | None = None,
                  emitter: np.ndarray | None = None,
                  gradient: tuple[np.ndarray, np.ndarray] | None = None,
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -376,8 +372,8 @@ def centre_shift(camera: Any, normal: np.ndarray, d: float, uv: np.ndarray, p_ca
     ``sigma_f`` mm across its thickness; camera frame) on the surface shape ``N, e1, e2,
     second`` (camera frame) through ``p_cam``.
 
-    ``ratio`` (per centre) is the extractor's shift per unit skew over the profile's squared
-    width, K / w^2 of :func:`skew_response` at the reported width; ``along`` (N, 2) the image
+    ``k`` (per centre) is the extractor's shift per unit skew over the sheet's variance
+    (:func:`skew_response` at the centre's sheet sigma); ``along`` (N, 2) the image
     direction each profile was taken along (a column: (0, 1)), where NaN or None: across the
     stripe. Along a column ``f`` also bends with the stripe's own curve in the image, which
     this sees too; the profile there is ``1 / |cos|`` as long. With the laser's ``emitter``
@@ -406,7 +402,7 @@ def centre_shift(camera: Any, normal: np.ndarray, d: float, uv: np.ndarray, p_ca
             Xp, Np = _hit(camera, q + h * p, *shape)
             Xm, Nm = _hit(camera, q - h * p, *shape)
             f0, fp, fm = X0 @ n + d, Xp @ n + d, Xm @ n + d
-            out = ratio[a:b] * FWHM**2 * var * (fp + fm - 2 * f0) / (2 * h * h) / ((fp - fm) / (2 * h))
+            out = k[a:b] * var * (fp + fm - 2 * f0) / (2 * h * h) / ((fp - fm) / (2 * h))
             if e is not None:
                 out = out + var * (_log_cos(Xp, Np, e) - _log_cos(Xm, Nm, e)) / (2 * h)
             bias[a:b] = out

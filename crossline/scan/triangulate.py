@@ -32,7 +32,14 @@ from crossline.laser import LaserPlanes
 from crossline.scan.centreline import blocked_ends, link_traces, smooth_along, trace_position
 from crossline.scan.cross_order import CrossOrder
 from crossline.scan.labels import Disambiguator, check_pattern, reference_gap
-from crossline.scan.sheet_curvature import FWHM, CellSums, centre_shift, skew_response
+from crossline.scan.sheet_curvature import (
+    FWHM,
+    CellSums,
+    centre_shift,
+    sheet_sigma,
+    skew_response,
+    stripe_gradient,
+)
 from crossline.scan.stripe_gaussian import ACROSS_SLOPE
 from crossline.scan.stripes import MERGED, STRIPES_SCHEMA, _frame_work, read_stripes_meta
 
@@ -443,25 +450,24 @@ def correct_points_file(
     if extractor is None or not isinstance(params, dict):
         info["skipped"] = "the stripes file does not name its extractor and parameters"
     else:
-        widths = pf.read(columns=["width_n"]).column("width_n").to_numpy()
+        sheet, sampled = _sheet_sigmas(pf, cam, planes, T_base_cam, by_number, sorted_frames, shape)
+        blur = next(iter(sheet.values()), (0.0, float("nan")))[1]
+        info["sheet_sigma_mm"] = {k: round(v[0], 5) for k, v in sheet.items()}
+        info["blur_sigma_px"] = round(blur, 4)
         work = _frame_work(str(extractor), params, data_max)
         wk, kk = skew_response(
-            lambda imT: work(0, imT), widths,
+            lambda imT: work(0, imT), sampled, blur=blur,
             peak=max(_median(levels.get("peak"), data_max) - background, 1.0), background=background,
             relative_noise=_median(noise.get("relative_noise"), 0.15),
             noise_dn=_median(noise.get("background_noise_dn"), _median(levels.get("noise"), 1.0)),
             data_max=data_max)
-        del widths
-        info["response"] = {"width_px": wk.round(3).tolist(), "K_px2": kk.round(3).tolist()}
+        info["response"] = {"sheet_sigma_px": wk.round(3).tolist(), "k": kk.round(3).tolist()}
         # which profiles ran across the stripe instead of along their column (row)
         across = (0.0 if extractor == "steger"
                   else ACROSS_SLOPE if extractor == "gaussian" and params.get("fit_across") else np.inf)
         if len(wk) == 0:
-            info["skipped"] = "the extractor found no stripe in its synthetic profiles"
+            info["skipped"] = "no sheet resolved from the blur, or the extractor found no synthetic stripe"
         else:
-            sheet = _sheet_sigmas(pf, cam, planes, T_base_cam, by_number, sorted_frames, shape)
-            info["sheet_sigma_mm"] = {k: round(v[0], 5) for k, v in sheet.items()}
-            info["blur_sigma_px"] = round(next(iter(sheet.values()), (0.0, float("nan")))[1], 4)
             # curved enough for a bias of BIAS_FLOOR_MM (about 3 sigma_f^2 kappa), and above the
             # curvature that the points' noise gives a flat surface
             thick = max((v[0] for v in sheet.values()), default=0.0)
@@ -513,10 +519,9 @@ def _to_cam(R: np.ndarray, shape: Any, cell: np.ndarray) -> list[np.ndarray]:
 
 def _sheet_sigmas(pf: pq.ParquetFile, cam: Camera, planes: LaserPlanes, T_base_cam: np.ndarray,
                   by_number: np.ndarray, sorted_frames: np.ndarray, shape: Any
-                  ) -> dict[str, tuple[float, float]]:
-    """Each laser's sheet sigma (mm) and the blur (px), from a sample of the scan's centres."""
-    from crossline.scan.sheet_curvature import FWHM, sheet_sigma, stripe_gradient
-
+                  ) -> tuple[dict[str, tuple[float, float]], np.ndarray]:
+    """Each laser's sheet sigma (mm) and the blur (px), from a sample of the scan's centres,
+    and the sheet's sigma across the stripe (px) at those centres."""
     step = max(1, -(-pf.metadata.num_rows // SHEET_SAMPLE))
     got: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {n: [] for n in planes.names}
     start = 0
@@ -540,9 +545,13 @@ def _sheet_sigmas(pf: pq.ParquetFile, cam: Camera, planes: LaserPlanes, T_base_c
                 geo = (*_to_cam(R[m], shape, cell[m]), shape.second[cell[m]])
                 grad, _ = stripe_gradient(cam, pl.normal, pl.d, uv[m], pc[m], *geo)
                 got[name].append((grad, wn[m] / FWHM))
-    sig, blur = sheet_sigma({k: (np.concatenate([a for a, _ in v]), np.concatenate([b for _, b in v]))
-                             for k, v in got.items() if v})
-    return {k: (v, blur) for k, v in sig.items()}
+    joined = {k: (np.concatenate([a for a, _ in v]), np.concatenate([b for _, b in v]))
+              for k, v in got.items() if v}
+    sig, blur = sheet_sigma(joined)
+    # the sheet's own sigma (px, across the stripe) at the sampled centres: the synthetic
+    # profiles of the extractor's response cover these
+    sampled = np.concatenate([sig[k] / g for k, (g, _) in joined.items() if sig.get(k, 0) > 0] or [[]])
+    return {k: (v, blur) for k, v in sig.items()}, sampled
 
 
 def _corrected_group(t: pa.Table, cam: Camera, planes: LaserPlanes, T_base_cam: np.ndarray,
@@ -550,8 +559,6 @@ def _corrected_group(t: pa.Table, cam: Camera, planes: LaserPlanes, T_base_cam: 
                      wk: np.ndarray, kk: np.ndarray, across: float,
                      sheet: dict[str, tuple[float, float]]) -> tuple[pa.Table, np.ndarray]:
     """One row group with the centres on curved surfaces corrected; (table, their shifts px)."""
-    from crossline.scan.sheet_curvature import stripe_gradient
-
     n_rows = t.num_rows
     fpos, pc, cell = _frame_geometry(t, T_base_cam, by_number, sorted_frames, shape, np.arange(n_rows))
     lab = t.column("laser").to_numpy(zero_copy_only=False).astype(str)
@@ -582,9 +589,13 @@ def _corrected_group(t: pa.Table, cam: Camera, planes: LaserPlanes, T_base_cam: 
             steep = np.where(axis[m] == 1, b_ / a_, a_ / b_) > across
             along = np.where((axis[m] == 1)[:, None], [1.0, 0.0], [0.0, 1.0])
             along[steep] = np.nan
-            bias[m], _, _ = centre_shift(cam, pl.normal, pl.d, uv[m], pc[m], *geo, sigma_f=sig,
-                                         ratio=np.interp(wn[m], wk, kk / wk**2), along=along,
-                                         emitter=-pl.d * np.asarray(pl.normal), gradient=(g, ph))
+            # the extractor's response at the sheet's width along the profile it took
+            p_ = np.where(np.isfinite(along), along, ph)
+            cos = np.abs(np.einsum("ij,ij->i", p_, ph))
+            k = np.interp(sig / (g * cos), wk, kk)
+            bias[m], _, _ = centre_shift(cam, pl.normal, pl.d, uv[m], pc[m], *geo, sigma_f=sig, k=k,
+                                         along=along, emitter=-pl.d * np.asarray(pl.normal),
+                                         gradient=(g, ph))
             # a centre stays on its column (row): one fitted across the stripe was carried
             # along the line to it, and so is its shift
             scale[m] = np.where(steep, np.where(axis[m] == 0, ph[:, 1], ph[:, 0]), 1.0)
