@@ -52,6 +52,7 @@ SKEW_BETA = 0.02  # skew of the synthetic profiles: f = t + beta t^2 / sigma (li
 SYNTH_COLUMNS = 384  # columns per synthetic frame
 BLOCK = 8192  # centres (or points) handled at a time: bounded memory on long scans
 CELL_MM = 0.5  # the grid of the surface's shape: a sheet's band is 0.1-1 mm wide
+MAX_SIGMA_PX = 15.0  # the widest sheet profile the response is measured for (px, sigma)
 FWHM = 2.0 * np.sqrt(2.0 * np.log(2.0))
 
 
@@ -100,7 +101,9 @@ def skew_response(
     f1`` px along ``tau`` (-3 for a centroid, whatever the blur).
     """
     w = np.asarray(sigmas, dtype=np.float64)
-    w = w[np.isfinite(w) & (w > 0)]
+    # a centre whose stripe runs nearly along its own sheet (|grad f| ~ 0) has no profile to
+    # skew: the table covers the widths a stripe can have
+    w = w[np.isfinite(w) & (w > 0) & (w <= MAX_SIGMA_PX)]
     if w.size == 0:
         return np.empty(0), np.empty(0)
     sig = np.unique(np.round(np.quantile(w, [0.005, 0.1, 0.3, 0.5, 0.7, 0.9, 0.995]), 2))

@@ -550,7 +550,8 @@ def _sheet_sigmas(pf: pq.ParquetFile, cam: Camera, planes: LaserPlanes, T_base_c
     sig, blur = sheet_sigma(joined)
     # the sheet's own sigma (px, across the stripe) at the sampled centres: the synthetic
     # profiles of the extractor's response cover these
-    sampled = np.concatenate([sig[k] / g for k, (g, _) in joined.items() if sig.get(k, 0) > 0] or [[]])
+    with np.errstate(divide="ignore"):  # |grad f| = 0: no profile (left out by skew_response)
+        sampled = np.concatenate([sig[k] / g for k, (g, _) in joined.items() if sig.get(k, 0) > 0] or [[]])
     return {k: (v, blur) for k, v in sig.items()}, sampled
 
 
