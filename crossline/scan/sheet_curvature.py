@@ -15,18 +15,19 @@ surface: a sphere of radius R is measured small by about ``sigma_f^2 / R`` times
 extractor's factor (random rig 7: sheet 0.34 mm, ball 20 mm, diameter -37 um; with a sheet
 0.35 x as thick, -2 um).
 
-The correction, at the cause: :func:`surface_shape` fits the local shape of the scanned
-surface (normal and second fundamental form, from the scan's own points over a few mm),
-:func:`centre_shift` computes each centre's ``f(tau)`` by intersecting the rays of the
-neighbouring pixels with that shape, and the shift ``K (f2 / f1)`` along the stripe's image
-normal; :func:`skew_response` measures ``K`` as a function of the stripe width the extractor
-reports, by running the scan's own extractor (same parameters) on synthetic skewed profiles at
-the scan's levels and noise. Nothing here knows the renderer: sheet thickness enters through
-the measured stripe width, the shape through the measured points.
-
-Left out: the incidence term (Lambert's cosine changes across the band on a curved surface, a
-second skew, ~0.6 um on rig 7's ball): it needs each laser's emitter position, which no
-calibration here measures.
+The correction, at the cause: :func:`surface_shape` (or :class:`CellSums` for a long scan)
+fits the local shape of the scanned surface (normal and second fundamental form, from the
+scan's own points over a few mm); :func:`sheet_sigma` finds each laser's sheet sigma and the
+camera's blur from the widths the extractor reports; :func:`skew_response` measures ``k``
+against the sheet's sigma by running the scan's own extractor (same parameters) on synthetic
+skewed, blurred profiles at the scan's levels and noise; :func:`centre_shift` computes each
+centre's ``f(tau)`` along the profile the extractor took by intersecting the rays of the
+neighbouring pixels with that shape, and adds Lambert's term (the cosine of incidence changes
+across the band on a curved surface: a Gaussian times ``1 + s tau`` peaks ``s sigma^2``
+further on), which needs the laser's emitter: no calibration here measures it, and the caller
+takes the foot of the perpendicular from the camera centre to the plane. Nothing here knows
+the renderer: the sheet's thickness enters through the measured widths, the shape through the
+measured points.
 """
 
 from __future__ import annotations
