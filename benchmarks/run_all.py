@@ -50,6 +50,8 @@ AREAS: dict[str, tuple[str, str]] = {
     "jpeg": ("JPEG frames against PNG: camera, plane angle and point sigma",
              "python benchmarks/bench_jpeg.py"),
     "ball_bar": ("Ball bar: sphere-spacing error SD against truth", "python benchmarks/bench_ball_bar.py"),
+    "sheet_curvature": ("Stripe centres of a thick sheet on a ball, corrected, against truth",
+                        "python benchmarks/bench_sheet_curvature.py"),
 }
 
 
