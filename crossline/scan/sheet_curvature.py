@@ -217,9 +217,10 @@ class SurfaceShape:
         """Cells whose shape has been fitted so far."""
         return int(self._done.sum())
 
-    def curvature(self) -> np.ndarray:
-        """The larger principal curvature (absolute, 1/mm) of each cell (0 where not fitted)."""
-        s = self.second
+    def curvature(self, cells: np.ndarray | None = None) -> np.ndarray:
+        """The larger principal curvature (absolute, 1/mm) of each cell, or of ``cells``
+        (indices); 0 where not fitted."""
+        s = self.second if cells is None else self.second[cells]
         return np.abs(0.5 * (s[:, 0] + s[:, 2])) + np.sqrt(0.25 * (s[:, 0] - s[:, 2]) ** 2 + s[:, 1] ** 2)
 
     def ensure(self, cells: np.ndarray | None = None) -> None:

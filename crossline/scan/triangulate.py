@@ -569,9 +569,7 @@ def _corrected_group(t: pa.Table, cam: Camera, planes: LaserPlanes, T_base_cam: 
     axis = t.column("axis").to_numpy()
     use = (cell >= 0) & np.isfinite(wn) & np.isfinite(pc).all(1)
     shape.ensure(cell[use])
-    s = shape.second[cell[use]]
-    kappa = np.abs(0.5 * (s[:, 0] + s[:, 2])) + np.sqrt(0.25 * (s[:, 0] - s[:, 2]) ** 2 + s[:, 1] ** 2)
-    use[use] = shape.ok[cell[use]] & (kappa > kmin)
+    use[use] = shape.ok[cell[use]] & (shape.curvature(cell[use]) > kmin)
     R = T_base_cam[fpos, :3, :3]  # base <- cam of each point's frame
     bias = np.full(n_rows, np.nan)
     scale = np.ones(n_rows)  # px along the column (row) per px along the profile
