@@ -2,6 +2,7 @@
 
     python benchmarks/bench_scale.py                      # 1000,5000,20000,50000 frames
     python benchmarks/bench_scale.py --sizes 1000,5000 --chunks 2
+    python benchmarks/bench_scale.py --sizes 50000 --stages fuse,report --reuse   # again, from its points
 
 Long scans are made by :func:`scan_data.long_capture`: frames of a rendered noisy-sensor plate
 scan (:func:`scan_data.sensor_capture`) reused in a fixed-seed order along a long, varied arm
@@ -139,13 +140,26 @@ def stage_commands(capture: Path, interim: Path, processed: Path, chunks: int,
 STAGES = ("check", "extract", "gather", "triangulate", "fuse", "report")
 
 
-def run_size(src: Path, n: int, chunks: int, stages: tuple[str, ...]) -> dict:
-    """All stages on an ``n``-frame long scan; per stage wall, CPU and peak RSS."""
+def run_size(src: Path, n: int, chunks: int, stages: tuple[str, ...], reuse: bool = False) -> dict:
+    """All stages on an ``n``-frame long scan; per stage wall, CPU and peak RSS.
+
+    ``reuse`` keeps what an earlier run of this size left (its points file, fused cloud) and
+    runs only ``stages`` on it: the later stages of a long scan measured again without its
+    extraction."""
     from crossline.sim import write_true_calibration
 
     cap = long_capture(src, n)
     work = CACHE / "scale" / f"{n}"
-    shutil.rmtree(work, ignore_errors=True)
+    if reuse:
+        need = {"triangulate": work / "interim" / "stripes" / f"{SCAN}.parquet",
+                "fuse": work / "interim" / "points" / f"{SCAN}.parquet",
+                "report": work / "processed" / f"{SCAN}.ply"}
+        missing = [str(need[s]) for s in stages[:1] if s in need and not need[s].is_file()]
+        if missing:
+            raise SystemExit(f"--reuse: {missing[0]} is missing; run the earlier stages of "
+                             f"{n} frames first")
+    else:
+        shutil.rmtree(work, ignore_errors=True)
     interim, processed = work / "interim", work / "processed"
     for d in (interim / "stripes" / SCAN, interim / "points", processed, work / "logs"):
         d.mkdir(parents=True, exist_ok=True)
@@ -227,6 +241,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--budget-s", type=float, default=float("inf"),
                     help="skip a size whose predicted time exceeds the time left")
     ap.add_argument("--tag", default="", help="suffix of the result files")
+    ap.add_argument("--reuse", action="store_true",
+                    help="run --stages on what an earlier run of each size left (e.g. --stages "
+                         "fuse,report after a run that made the points), instead of from scratch")
     ap.add_argument("--replot", action="store_true", help="only redraw the plot from scale<tag>.json")
     a = ap.parse_args(argv)
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -253,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(msg, flush=True)
                 lines.append(msg)
                 continue
-        r = run_size(src, n, a.chunks, stages)
+        r = run_size(src, n, a.chunks, stages, a.reuse)
         results.append(r)
         for stage, s in r["stages"].items():
             lines.append(f"  {n:6d} frames {stage:12s} {s['wall_s']:8.1f} s wall {s['cpu_s']:8.1f} s CPU  "
