@@ -161,6 +161,35 @@ def test_crossings_of_an_exact_scan_meet_on_the_surface(ball):
     assert np.degrees(cr.angle).min() >= 30
 
 
+def test_crossings_by_slabs_are_those_of_the_whole_scan(ball):
+    # a long scan is searched a slab of space at a time (bounded memory): the same crossings,
+    # those on a slab's edge included, none twice
+    frames, views = camera_centres(ball.frame, ball.df[["x_cam", "y_cam", "z_cam"]].to_numpy(),
+                                   ball.p_true)
+    fpos = np.searchsorted(frames, ball.frame)
+    rng = np.random.default_rng(3)
+    p = ball.p_true + 0.002 * rng.standard_normal(ball.p_true.shape)  # gaps that differ
+    whole = R.find_crossings(fpos, ball.laser, p, views)
+    cr = R.find_crossings(fpos, ball.laser, p, views, slab_points=len(p) // 5)
+    assert cr.counts["slabs"] == 5 and "slabs" not in whole.counts
+    key = lambda c: np.c_[c.frame_a, c.frame_b, np.round(c.x / 0.2)]  # noqa: E731
+    assert len(cr.gap) == len(np.unique(key(cr), axis=0))  # none twice
+    # each crossing of the whole search found by slabs, at the same place with the same gap
+    pairs = {}
+    for i, (a, b) in enumerate(zip(cr.frame_a, cr.frame_b, strict=True)):
+        pairs.setdefault((a, b), []).append(i)
+    dx, dg = [], []
+    for i, (a, b) in enumerate(zip(whole.frame_a, whole.frame_b, strict=True)):
+        j = pairs.get((a, b), [])
+        d = np.linalg.norm(cr.x[j] - whole.x[i], axis=1) if j else np.array([np.inf])
+        k = int(np.argmin(d))
+        dx.append(d[k])
+        dg.append(abs(cr.gap[j[k]] - whole.gap[i]) if j else np.inf)
+    dx, dg = np.array(dx), np.array(dg)
+    assert len(whole.gap) > 1500 and abs(len(cr.gap) - len(whole.gap)) <= 0.01 * len(whole.gap)
+    assert np.mean(dx < 0.05) > 0.99 and np.median(dg) < 1e-4
+
+
 def test_gap_is_the_normal_displacement_of_the_a_frame(plate):
     # lift one AB frame's points by 3 µm: its crossings open by +3 µm (A) or -3 µm (B)
     frames, views = camera_centres(plate.frame, plate.df[["x_cam", "y_cam", "z_cam"]].to_numpy(),

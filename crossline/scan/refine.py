@@ -163,6 +163,8 @@ def refine_frames(
         use = ab & mask
     # the points that may cross by index: no copies of a long scan's arrays
     subset = None if use.all() else np.flatnonzero(use).astype(np.int32 if len(p) < 2**31 else np.int64)
+    not_crossing = int((ab & ~use).sum())
+    del ab, use  # 2 B a point less while the crossings are searched
     cr = find_crossings(fpos, lab, p, views, half_mm=half_mm, min_angle_deg=min_angle_deg,
                         threads=threads, subset=subset)
     del subset
@@ -188,7 +190,7 @@ def refine_frames(
         frames=F,
         frames_with_crossings=int(seen.sum()),
         same_frame_crossings=int((cr.frame_a == cr.frame_b).sum()),
-        centres_not_crossing=int((ab & ~use).sum()),
+        centres_not_crossing=not_crossing,
         candidates=cr.counts,
         ab_offset_mm=beta,
         correction_rms_mm=float(np.sqrt(np.mean(shift2))),

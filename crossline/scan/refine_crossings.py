@@ -22,6 +22,9 @@ MIN_ANGLE_DEG = 30.0  # stripes crossing at a smaller angle are not used
 MIN_SPACINGS = 6  # a crossing's stripe curves reach at least this many point spacings either side
 _QUERY_ROWS = 500_000  # seeds searched for B neighbours at a time
 MAX_WIDTH_RATIO = 2.0  # centres of column cuts longer than this x their laser's median: no crossings
+# points searched at once; more are searched a slab of space at a time, so that the search's
+# own arrays (~60 B a point: stripe order, k-d tree) stay a few hundred MB on a long scan
+SLAB_POINTS = 4_000_000
 
 
 @dataclass(frozen=True)
@@ -244,6 +247,107 @@ class _Ordered:
         return out
 
 
+def _spacings(po: _Ordered, sid: np.ndarray, lo_: np.ndarray) -> tuple[float, dict[int, float]]:
+    """Median distance (mm) between neighbouring points of a stripe: over both lasers, and
+    each laser's own (``po`` the points in stripe order, ``sid`` their stripes, ``lo_`` their
+    laser codes)."""
+    # distance between neighbours in the order, a column at a time (no (N, 3) temporaries)
+    step = po.steps()
+    along = sid[1:] == sid[:-1]
+    # medians of the masked copies, sorted in place (np.median would copy each once more)
+    spacing = float(np.median(step[along], overwrite_input=True)) if along.any() else 0.05
+    # each laser's own point spacing: a stripe that runs steeply through the image, or meets
+    # the surface at a grazing angle, is sampled more sparsely than the other, by a factor of
+    # a few on some rigs (docs/method.md, pose refinement)
+    sp = {}
+    for code in (1, 2):
+        m = along & (lo_[1:] == code)
+        sp[code] = float(np.median(step[m], overwrite_input=True)) if m.any() else spacing
+    return spacing, sp
+
+
+def _windows(spacing: float, sp: dict[int, float], half_mm: float,
+             radius_mm: float | None) -> tuple[float, dict[int, float]]:
+    """The seeds' search radius and each laser's half window (mm) for these point spacings."""
+    if radius_mm is None:
+        radius_mm = max(0.1, 3.0 * spacing, sp[1], sp[2])
+    # a quadratic needs its points: where a stripe is sampled sparsely (a camera of coarse
+    # resolution, or the steeper laser) its window grows to MIN_SPACINGS of them either side,
+    # else a HALF_MM window holds too few and no crossing of such a rig is ever fitted
+    return radius_mm, {code: max(half_mm, MIN_SPACINGS * sp[code]) for code in (1, 2)}
+
+
+def _by_slabs(frame_pos: np.ndarray, laser: np.ndarray, points: np.ndarray,
+              viewpoints: np.ndarray, *, half_mm: float, radius_mm: float | None,
+              min_angle_deg: float, threads: int, subset: np.ndarray | None,
+              slab_points: int) -> Crossings:
+    """:func:`find_crossings` a slab of space at a time: slabs across the points' longest
+    extent, about ``slab_points`` each, each searched with a margin that holds every stripe
+    window of a crossing in it; a crossing belongs to the slab whose core holds it.
+
+    The point spacings (hence the windows) are taken once, from the stripes of a sample of
+    whole frames, so that every slab fits its curves as the whole scan's search would.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    idx = np.arange(len(p), dtype=np.int64) if subset is None else np.asarray(subset)
+    n = len(idx)
+    fp_all, lab_all = np.asarray(frame_pos), np.asarray(laser)
+    if fp_all.dtype.kind not in "iu" or lab_all.dtype.kind not in "iu":
+        raise ValueError("frame_pos and laser must be integer arrays")
+    nslab = -(-n // slab_points)
+    # the spacings from every k-th frame's stripes, about one slab of points
+    every = max(1, nslab)
+    fp = fp_all if subset is None else fp_all[idx]
+    sample = idx[fp % every == 0]
+    del fp
+    if len(sample) < 16:
+        sample = idx
+    order, sid, _, _ = _stripes(fp_all[sample], lab_all[sample], p, sample)
+    spacing, sp = _spacings(_Ordered(p, sample[order]), sid, lab_all[sample][order])
+    del order, sid, sample
+    radius, half = _windows(spacing, sp, half_mm, radius_mm)
+    # a crossing's seeds lie within half a window of it, their windows a whole one further
+    margin = 2.0 * max(half.values()) + radius
+    lo = np.array([p[idx[a:a + (1 << 20)]].min(0) for a in range(0, n, 1 << 20)]).min(0)
+    hi = np.array([p[idx[a:a + (1 << 20)]].max(0) for a in range(0, n, 1 << 20)]).max(0)
+    axis = int(np.argmax(hi - lo))
+    c = np.empty(n, np.float32)  # the points' coordinate across the slabs (mm; 4 B a point)
+    for a in range(0, n, 1 << 20):
+        c[a:a + (1 << 20)] = p[idx[a:a + (1 << 20)], axis]
+    edges = np.quantile(c[::max(1, n // 200_000)], np.linspace(0, 1, nslab + 1)).astype(np.float64)
+    edges[0], edges[-1] = -np.inf, np.inf
+    parts: list[Crossings] = []
+    slab_of: list[np.ndarray] = []
+    for k in range(nslab):
+        e0, e1 = edges[k], edges[k + 1]
+        sel = idx[(c >= e0 - margin) & (c < e1 + margin)]
+        cr = _search(fp_all, lab_all, p, viewpoints, half_mm=half_mm, radius_mm=radius,
+                     min_angle_deg=min_angle_deg, threads=threads, subset=sel,
+                     spacings=(spacing, sp))
+        del sel
+        core = np.flatnonzero((cr.x[:, axis] >= e0) & (cr.x[:, axis] < e1))
+        parts.append(cr)
+        slab_of.append(core)
+    del c
+    take = [np.concatenate([getattr(cr, f)[k] for cr, k in zip(parts, slab_of, strict=True)])
+            for f in ("frame_a", "frame_b", "x", "n", "gap", "sigma", "angle")]
+    slab = np.concatenate([np.full(len(k), i) for i, k in enumerate(slab_of)])
+    # a crossing on a slab's edge may come from both neighbours with slightly different seeds:
+    # keep the lower slab's
+    pair = take[0] * (int(take[1].max(initial=0)) + 1) + take[1]
+    o = np.lexsort((slab, pair))
+    dup = np.zeros(len(o), bool)
+    near = 2 * max(half.values())
+    for lag in (1, 2, 3):
+        a, b = o[:-lag], o[lag:]
+        dup[b] |= ((pair[b] == pair[a]) & (slab[b] != slab[a]) & ~dup[a]
+                   & (np.linalg.norm(take[2][b] - take[2][a], axis=1) < near))
+    keep = np.sort(np.flatnonzero(~dup))
+    counts = {key: sum(cr.counts.get(key, 0) for cr in parts) for key in ("seeds", "fitted", "kept")}
+    counts.update(unique=len(keep), slabs=nslab)
+    return Crossings(*(t[keep] for t in take), counts)
+
+
 def _closest_per_cell(x: np.ndarray, pair: np.ndarray, dist: np.ndarray) -> np.ndarray:
     """Indices of the closest candidate (least ``dist``, the first on a tie) of each stripe
     ``pair`` in each 2 mm cell of its A point ``x`` (N, 3), ordered by pair, then cell."""
@@ -270,6 +374,7 @@ def find_crossings(
     min_angle_deg: float = MIN_ANGLE_DEG,
     threads: int = 1,
     subset: np.ndarray | None = None,
+    slab_points: int = SLAB_POINTS,
 ) -> Crossings:
     """Every crossing of an A stripe with a B stripe (of any frame, the same one included).
 
@@ -283,8 +388,34 @@ def find_crossings(
     of the two curves; it is kept if it lies within half a window of both seeds, the
     stripes cross at ``min_angle_deg`` or more and the gap is under ``radius_mm``.
     ``subset`` (indices) restricts the search to those points, as passing ``points[subset]``
-    (and the others likewise) would, without copies of a long scan's arrays.
+    (and the others likewise) would, without copies of a long scan's arrays. More than
+    ``slab_points`` points are searched a slab of space at a time (:func:`_by_slabs`): the
+    search's own arrays (stripe order, k-d tree) then exist for one slab, not the whole scan.
     """
+    n = len(points) if subset is None else len(subset)
+    if n > max(int(slab_points), 1):
+        return _by_slabs(frame_pos, laser, points, viewpoints, half_mm=half_mm,
+                         radius_mm=radius_mm, min_angle_deg=min_angle_deg, threads=threads,
+                         subset=subset, slab_points=int(slab_points))
+    return _search(frame_pos, laser, points, viewpoints, half_mm=half_mm, radius_mm=radius_mm,
+                   min_angle_deg=min_angle_deg, threads=threads, subset=subset)
+
+
+def _search(
+    frame_pos: np.ndarray,
+    laser: np.ndarray,
+    points: np.ndarray,
+    viewpoints: np.ndarray,
+    *,
+    half_mm: float,
+    radius_mm: float | None,
+    min_angle_deg: float,
+    threads: int,
+    subset: np.ndarray | None,
+    spacings: tuple[float, dict[int, float]] | None = None,
+) -> Crossings:
+    """:func:`find_crossings` on the points at once; ``spacings`` (all lasers', and each
+    laser's median point spacing along a stripe, mm) if already known for the whole scan."""
     from scipy.spatial import cKDTree
 
     p = np.asarray(points, dtype=np.float64)
@@ -311,26 +442,9 @@ def find_crossings(
                       np.zeros(0), np.zeros(0), np.zeros(0))
     if len(a) < 8 or len(b) < 8:
         return empty
-    # distance between neighbours in the order, a column at a time (no (N, 3) temporaries)
-    step = po.steps()
-    along = sid[1:] == sid[:-1]
-    # medians of the masked copies, sorted in place (np.median would copy each once more)
-    spacing = float(np.median(step[along], overwrite_input=True)) if along.any() else 0.05
-    # each laser's own point spacing (mm, between neighbouring points of a stripe): a
-    # stripe that runs steeply through the image, or meets the surface at a grazing angle,
-    # is sampled more sparsely than the other, by a factor of a few on some rigs
-    # (docs/method.md, pose refinement)
-    sp = {}
-    for code in (1, 2):
-        m = along & (lo_[1:] == code)
-        sp[code] = float(np.median(step[m], overwrite_input=True)) if m.any() else spacing
-    del step, along, lo_  # 10 B a point, not needed past here: the k-d tree below is the peak
-    if radius_mm is None:
-        radius_mm = max(0.1, 3.0 * spacing, sp[1], sp[2])
-    # a quadratic needs its points: where a stripe is sampled sparsely (a camera of coarse
-    # resolution, or the steeper laser) its window grows to MIN_SPACINGS of them either side,
-    # else a HALF_MM window holds too few and no crossing of such a rig is ever fitted
-    half = {code: max(half_mm, MIN_SPACINGS * sp[code]) for code in (1, 2)}
+    spacing, sp = _spacings(po, sid, lo_) if spacings is None else spacings
+    del lo_  # not needed past here: the k-d tree below is the peak
+    radius_mm, half = _windows(spacing, sp, half_mm, radius_mm)
     tree = cKDTree(po[b])
     # every other A point is enough to seed: the crossing itself is found by the curve fits
     a = a[::2]
