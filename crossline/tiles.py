@@ -22,7 +22,8 @@ from itertools import pairwise
 
 import numpy as np
 
-__all__ = ["SLAB_POINTS", "Slab", "knn_mean_distance", "slabs", "statistical_inliers"]
+__all__ = ["SLAB_POINTS", "Slab", "cuts", "knn_mean_distance", "longest_axis", "slabs",
+           "statistical_inliers"]
 
 SLAB_POINTS = 1_000_000  # points a slab answers for: ~0.25 GB of neighbour work at a time
 _QUERY_ROWS = 200_000  # rows of a k-nearest query at once (k distances and indices each)
@@ -70,6 +71,30 @@ def slabs(points: np.ndarray, halo: float, target: int = SLAB_POINTS) -> Iterato
     del xs
     for lo, hi, a, b, x0, x1 in cuts:
         yield Slab(order[lo:hi], order[a:b], lo - a, hi - a, axis, x0, x1)
+
+
+def longest_axis(points: np.ndarray, index: np.ndarray | None = None,
+                 block: int = 1 << 20) -> int:
+    """The axis (0, 1, 2) of the largest extent of ``points[index]`` (all without ``index``),
+    read a block at a time (no copy of a long scan's points)."""
+    p = np.asarray(points)
+    n = len(p) if index is None else len(index)
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for a in range(0, n, block):
+        q = p[a:a + block] if index is None else p[index[a:a + block]]
+        lo, hi = np.minimum(lo, q.min(0)), np.maximum(hi, q.max(0))
+    return int(np.argmax(hi - lo))
+
+
+def cuts(x: np.ndarray, target: int, sample: int = 200_000) -> np.ndarray:
+    """Edges (k + 1,) that cut the coordinates ``x`` into k = ceil(N / ``target``) slabs of
+    about ``target`` points each (quantiles of an even sample of ``x``; -inf and +inf at the
+    ends): slab i is ``edges[i] <= x < edges[i + 1]``, without a sort of the whole scan."""
+    x = np.asarray(x)
+    k = max(1, -(-len(x) // max(int(target), 1)))
+    edges = np.quantile(x[::max(1, len(x) // sample)], np.linspace(0, 1, k + 1)).astype(np.float64)
+    edges[0], edges[-1] = -np.inf, np.inf
+    return edges
 
 
 def knn_mean_distance(points: np.ndarray, k: int, halo: float, *, threads: int = 1,

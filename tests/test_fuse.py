@@ -90,6 +90,29 @@ def test_outliers_removed_and_counted(plate_scan):
     assert s["by_laser_input"]["A"] + s["by_laser_input"]["B"] == len(pts)
 
 
+def test_outliers_removed_in_place_where_the_columns_are_handed_over(plate_scan):
+    # run_fuse hands its columns over: the kept points are moved to the front of the same
+    # arrays (a long scan's points not held twice), with the cloud fuse_cloud gives
+    from crossline.fuse.cloud import _compact, fuse_columns
+
+    df, _, T = plate_scan
+    rng = np.random.default_rng(5)
+    far = df[["x", "y", "z"]].to_numpy()[:30] + T[:3, 2] * 10.0
+    pts = np.vstack([far[:15], df[["x", "y", "z"]].to_numpy(), far[15:]])
+    lab = np.r_[np.ones(15), np.where(df["laser"] == "A", 1, 2), np.full(15, 2)].astype(np.uint8)
+    fr = np.r_[np.zeros(15), df["frame"].to_numpy(), np.zeros(15)].astype(np.int64)
+    ref = fuse_cloud(pts, lab, fr, neighbours=20, std_ratio=3.0)
+    held = pts.copy()
+    c = fuse_columns({"xyz": held, "laser": lab.copy(), "frame": fr.copy()}, neighbours=20,
+                     std_ratio=3.0)
+    assert ref.stats["n_outliers"] >= 30
+    assert np.array_equal(c.points, ref.points) and np.shares_memory(c.points, held)
+    assert np.array_equal(c.laser, ref.laser) and np.array_equal(c.frame, ref.frame)
+    a = rng.standard_normal((1001, 3))
+    keep = rng.random(1001) < 0.7
+    assert np.array_equal(_compact(a.copy(), keep, block=64), a[keep])
+
+
 def test_normals_face_the_camera(plate_scan):
     df, Ts, T = plate_scan
     c = fuse_cloud(df[["x", "y", "z"]].to_numpy(), df["laser"].to_numpy(), df["frame"].to_numpy(),

@@ -279,9 +279,14 @@ def fuse_columns(
     stats["n_outliers"] = int((~keep).sum())
     stats["n_after_outlier_removal"] = int(keep.sum())
     if not keep.all():
-        kept = np.flatnonzero(keep)
-        p, lab, fr = p[kept], lab[kept], fr[kept]
-        del kept
+        if owned and p.flags.writeable:
+            # the kept points moved to the front of the arrays they are in: a long scan's
+            # points are not held twice (24 B a point at the stage's peak)
+            p, lab, fr = (_compact(a, keep) for a in (p, lab, fr))
+        else:
+            kept = np.flatnonzero(keep)
+            p, lab, fr = p[kept], lab[kept], fr[kept]
+            del kept
     del keep
 
     if voxel_mm > 0:
@@ -307,6 +312,17 @@ def fuse_columns(
     if arm is not None:
         stats["arm_draws"] = {"draws": len(arm.draws), "frames": len(arm.frames), "kind": arm.kind}
     return FusedCloud(vp, normals, vlab, vfr.astype(np.int32, copy=False), stats, arm)
+
+
+def _compact(a: np.ndarray, keep: np.ndarray, block: int = 1 << 20) -> np.ndarray:
+    """``a[keep]`` written over the front of ``a`` itself, a block of rows at a time (each
+    block's kept rows land at or before where they were read): the view of those rows."""
+    n = 0
+    for r0 in range(0, len(a), block):
+        rows = a[r0:r0 + block][keep[r0:r0 + block]]
+        a[n:n + len(rows)] = rows
+        n += len(rows)
+    return a[:n]
 
 
 def _by_laser(codes: np.ndarray) -> dict[str, int]:

@@ -15,6 +15,8 @@ from itertools import pairwise
 
 import numpy as np
 
+from crossline.tiles import cuts, longest_axis
+
 __all__ = ["Crossings", "find_crossings", "usable_centres"]
 
 HALF_MM = 0.6  # stripe fitted either side of a crossing, mm
@@ -294,9 +296,8 @@ def _by_slabs(frame_pos: np.ndarray, laser: np.ndarray, points: np.ndarray,
     fp_all, lab_all = np.asarray(frame_pos), np.asarray(laser)
     if fp_all.dtype.kind not in "iu" or lab_all.dtype.kind not in "iu":
         raise ValueError("frame_pos and laser must be integer arrays")
-    nslab = -(-n // slab_points)
     # the spacings from every k-th frame's stripes, about one slab of points
-    every = max(1, nslab)
+    every = max(1, -(-n // slab_points))
     fp = fp_all if subset is None else fp_all[idx]
     sample = idx[fp % every == 0]
     del fp
@@ -308,14 +309,12 @@ def _by_slabs(frame_pos: np.ndarray, laser: np.ndarray, points: np.ndarray,
     radius, half = _windows(spacing, sp, half_mm, radius_mm)
     # a crossing's seeds lie within half a window of it, their windows a whole one further
     margin = 2.0 * max(half.values()) + radius
-    lo = np.array([p[idx[a:a + (1 << 20)]].min(0) for a in range(0, n, 1 << 20)]).min(0)
-    hi = np.array([p[idx[a:a + (1 << 20)]].max(0) for a in range(0, n, 1 << 20)]).max(0)
-    axis = int(np.argmax(hi - lo))
+    axis = longest_axis(p, idx)
     c = np.empty(n, np.float32)  # the points' coordinate across the slabs (mm; 4 B a point)
     for a in range(0, n, 1 << 20):
         c[a:a + (1 << 20)] = p[idx[a:a + (1 << 20)], axis]
-    edges = np.quantile(c[::max(1, n // 200_000)], np.linspace(0, 1, nslab + 1)).astype(np.float64)
-    edges[0], edges[-1] = -np.inf, np.inf
+    edges = cuts(c, slab_points)
+    nslab = len(edges) - 1
     parts: list[Crossings] = []
     slab_of: list[np.ndarray] = []
     for k in range(nslab):
