@@ -308,6 +308,26 @@ def main(argv: list[str] | None = None) -> int:
                              f"({sl['ratio_combined_smoothed']:.2f}x)")
                 parts.append(part)
         lines.append(f"{name:<16} " + ("  ".join(parts) if parts else "no speckle figures"))
+    lines.append("sphere form against what sets it: the range of n residuals is form / rms times their "
+                 "RMS; the arm's pose noise per axis (truth.json) goes into the ball unrefined where its "
+                 "scan has no A-B crossings (24 frames of a quick capture often have none)")
+    lines.append(f"{'rig':<16} {'form':>6} {'vdi':>6} {'rms':>5} {'ratio':>5} {'n':>6} {'crossings':>9} "
+                 f"{'arm':>5}  (um; arm = its sigma per axis)")
+    for name, path in caps.items():
+        mpath = wd / "reports" / name / "metrics.json"
+        ball = json.loads(mpath.read_text()).get("scans", {}).get("ball", {}) if mpath.is_file() else {}
+        me = ball.get("measurement") or {}
+        ref = _get(ball, "counts", "fused", "pose_refinement") or {}
+        arm = json.loads((path / "truth.json").read_text()).get("arm_noise", {})
+        form, rms = _num(me.get("form_error_mm"), 1e3), _num(me.get("rms_mm"), 1e3)
+        rows[name]["form"] = {"form_um": form, "form_vdi_um": _num(me.get("form_error_vdi_mm"), 1e3),
+                              "rms_um": rms, "n": me.get("n"), "crossings": ref.get("crossings"),
+                              "refinement_skipped": ref.get("skipped"),
+                              "arm_sigma_axis_um": _num(arm.get("sigma_axis_mm"), 1e3)}
+        fr = rows[name]["form"]
+        cross = "skipped" if fr["refinement_skipped"] else str(fr["crossings"])
+        lines.append(f"{name:<16} {form:6.1f} {fr['form_vdi_um']:6.1f} {rms:5.1f} {form / rms:5.1f} "
+                     f"{fr['n'] or 0:6d} {cross:>9} {fr['arm_sigma_axis_um']:5.1f}")
     lines.append("stripe centres against the true centre lines (truth/*_centrelines.parquet: lit, seen, "
                  "not occluded), every scan: found = within 5 px of an unflagged centre; rms: row error "
                  "of the column-profiled ones within 2 px")
