@@ -491,6 +491,50 @@ def test_gauge_referenced_per_frame_cancels_pose_errors():
     assert abs(ab.difference["height_mm"]) < 1e-6  # the same plate-fit tilt as above
 
 
+def _swept_gauge(crossed: bool, drift_mm: float = 0.04, H: float = 10.0, seed: int = 3):
+    """A 16 mm block on a plate swept by 60 frames of a sheet x - m y - 0.8 z = x0 (m = 1; crossed:
+    m = 0.3 every other frame, the other laser), each frame raised by an arm error that drifts
+    by ``drift_mm`` over the sweep. The oblique sheet meets the top 0.8 H to the side of where
+    it meets the plate, so the plate's tilt about the stripes enters the heights."""
+    rng = np.random.default_rng(seed)
+    pts, frames = [], []
+    for f, x0 in enumerate(np.linspace(-20, 20, 60)):
+        m = 0.3 if crossed and f % 2 else 1.0
+        y = rng.uniform(-25, 25, 500)
+        x_top = x0 + m * y + 0.8 * H
+        top = (np.abs(x_top) < 8) & (np.abs(y) < 8)
+        x = np.where(top, x_top, x0 + m * y)
+        seen = top | ~((np.abs(x) < 8) & (np.abs(y) < 8))  # the plate under the block is hidden
+        z = np.where(top, H, 0.0) + drift_mm * (x0 + 20) / 40 + rng.normal(scale=0.001, size=500)
+        pts.append(np.column_stack([x, y, z])[seen])
+        frames.append(np.full(int(seen.sum()), f))
+    return np.vstack(pts), np.concatenate(frames)
+
+
+def test_gauge_plate_normal_from_each_frames_stripes():
+    """A drifting arm error tilts the plate plane fitted over all frames about the stripes;
+    an oblique sheet meets the top beside where it meets the plate, so heights along that
+    normal err by the tilt times that offset, however each frame is referenced. Crossed
+    stripes give the normal from each frame's own shape, which the error does not tilt."""
+    pts, frame = _swept_gauge(crossed=True)
+    g = mt.measure_gauge_block(pts, 10.0, frame=frame)
+    assert g.normal_from == "frames"
+    assert g.figures()["mean_mm"] == pytest.approx(10.0, abs=3e-4)
+    assert np.degrees(mt.angle_between(g.plate_normal, [0, 0, 1])) < 0.001
+    # the plane fit's normal, tilted by the drift: the same per-frame heights 6.5 um off
+    n, d = mt.fit_plane(pts[g.plate_mask])
+    n, d = (n, d) if n[2] > 0 else (-n, -d)
+    fp = frame[g.plate_mask]
+    off = np.bincount(fp, pts[g.plate_mask] @ n + d, 60) / np.maximum(np.bincount(fp, minlength=60), 1)
+    h = pts[g.top_mask] @ n + d - off[frame[g.top_mask]]
+    assert abs(h.mean() - 10.0) > 5e-3
+    # one laser: its stripes are parallel and do not tell the tilt about them; the plane fit
+    # is kept, with its error (the arm's, which only a crossing stripe can tell)
+    pts1, frame1 = _swept_gauge(crossed=False)
+    g1 = mt.measure_gauge_block(pts1, 10.0, frame=frame1)
+    assert g1.normal_from == "plane" and abs(g1.figures()["mean_mm"] - 10.0) > 5e-3
+
+
 def test_gauge_referenced_needs_plate_in_the_same_frames():
     pts, _ = gauge_scene(seed=12)
     on_top = pts[:, 2] > 10

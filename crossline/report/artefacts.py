@@ -144,6 +144,9 @@ class GaugeResult:
     reference: str = "plane"
     heights_plane: np.ndarray | None = None  # (n,) the paper's heights of the same points
     frame_offsets: np.ndarray | None = None  # per-frame plate offset from the plate plane, mm
+    # "frames": the plate's normal from each frame's stripes about their own centroids
+    # (normal_within_frames); "plane": from the plate plane fitted over the whole scan
+    normal_from: str = "plane"
 
     def figures(self) -> dict[str, Any]:
         """Mean, std, n, error of the mean against nominal, and the extra figures."""
@@ -237,6 +240,46 @@ def _edges(hull: ConvexHull, min_length: float = 0.5) -> np.ndarray:
     if keep.sum() < 3:
         keep = length >= np.sort(length)[-3]
     return hull.equations[keep]
+
+
+def gauge_groups(p: np.ndarray, frame: np.ndarray, plate_mask: np.ndarray,
+                 top_mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The plate's and the top face's points (M, 3) and their group (M,): one group per
+    frame and face, for :func:`normal_within_frames`."""
+    plate, top = np.flatnonzero(plate_mask), np.flatnonzero(top_mask)
+    both = np.r_[plate, top]
+    face = np.r_[np.zeros(plate.size, np.int64), np.ones(top.size, np.int64)]
+    return p[both], np.asarray(frame)[both].astype(np.int64) * 2 + face
+
+
+def normal_within_frames(points: np.ndarray, group: np.ndarray, weights: np.ndarray | None = None,
+                         min_points: int = 20, min_ratio: float = 100.0) -> np.ndarray | None:
+    """Unit normal of parallel planes scanned frame by frame, from each ``group``'s points (a
+    frame's points on one of the planes) about their own centroid, so that a frame's rigid
+    shift drops out; None where the groups' stripes do not span the plane (all parallel: a
+    one-line rig's sweep, or a scan that only one laser reaches) or are too few.
+
+    The scatter of the groups' points about their centroids has two large eigenvalues when
+    crossed stripes span the plane; the normal is then its smallest eigenvector. Groups of
+    fewer than ``min_points`` points are left out. Spanning means a middle eigenvalue at
+    least ``min_ratio`` times the smallest (the points' noise) and at least 1 % of the
+    largest (stripes crossing at some 11 degrees or more; parallel stripes leave it at their
+    noise); ``weights`` (M,) weigh the points (a resampling's).
+    """
+    w = np.ones(len(points)) if weights is None else np.asarray(weights, dtype=np.float64)
+    _, inv, cnt = np.unique(np.asarray(group), return_inverse=True, return_counts=True)
+    use = (cnt[inv] >= min_points) & (w > 0)
+    if use.sum() < 3 * max(min_points, 1):
+        return None
+    q, w = np.asarray(points, dtype=np.float64)[use], w[use]
+    inv = np.unique(inv[use], return_inverse=True)[1]
+    sw = np.bincount(inv, w)
+    c = np.stack([np.bincount(inv, w * q[:, i]) for i in range(3)], 1) / sw[:, None]
+    q -= c[inv]
+    ev, V = np.linalg.eigh((q * w[:, None]).T @ q)
+    if min_ratio > 0 and not (ev[1] > min_ratio * max(ev[0], 1e-30) and ev[1] >= 0.01 * ev[2]):
+        return None
+    return V[:, 0]
 
 
 def measure_gauge_block(
@@ -343,20 +386,18 @@ def measure_gauge_block(
         plate_n, plate_d = -plate_n, -plate_d
     heights = plane_distance(p[top_mask], plate_n, plate_d)
     heights_plane = frame_offsets = None
-    reference = "plane"
+    reference, normal_from = "plane", "plane"
     if frame is not None:
         frame = np.asarray(frame)
-        ufr, inv = np.unique(frame[plate_mask], return_inverse=True)
-        res = plane_distance(p[plate_mask], plate_n, plate_d)
-        count = np.bincount(inv, minlength=ufr.size)
-        offset = np.bincount(inv, weights=res, minlength=ufr.size) / np.maximum(count, 1)
-        ufr, offset = ufr[count >= min_frame_points], offset[count >= min_frame_points]
+        ufr, inv, count = np.unique(frame[plate_mask], return_inverse=True, return_counts=True)
+        usable = count >= min_frame_points
+        ufr_used = ufr[usable]
         top_idx = np.flatnonzero(top_mask)
         k = np.zeros(top_idx.size, dtype=np.int64)
         seen = np.zeros(top_idx.size, dtype=bool)
-        if ufr.size:
-            k = np.clip(np.searchsorted(ufr, frame[top_idx]), 0, ufr.size - 1)
-            seen = ufr[k] == frame[top_idx]
+        if ufr_used.size:
+            k = np.clip(np.searchsorted(ufr_used, frame[top_idx]), 0, ufr_used.size - 1)
+            seen = ufr_used[k] == frame[top_idx]
         if seen.sum() < MIN_POINTS:
             raise ValueError(
                 f"measure_gauge_block: only {int(seen.sum())} top points lie in frames that also "
@@ -365,7 +406,17 @@ def measure_gauge_block(
         top_mask = np.zeros(len(p), dtype=bool)
         top_mask[top_idx[seen]] = True
         heights_plane = heights[seen]
-        heights = heights_plane - offset[k[seen]]
+        n_frames = normal_within_frames(*gauge_groups(p, frame, plate_mask, top_mask))
+        if n_frames is not None:
+            # the plate's normal from the shape of each frame's stripes on the two faces, which
+            # the arm's pose error of a frame (a shift of all its points) does not tilt; the
+            # heights are measured along it
+            plate_n = n_frames if float(n_frames @ plate_n) >= 0 else -n_frames
+            plate_d = -float(np.mean(p[plate_mask] @ plate_n))
+            normal_from = "frames"
+        res = plane_distance(p[plate_mask], plate_n, plate_d)
+        offset = (np.bincount(inv, weights=res, minlength=ufr.size) / np.maximum(count, 1))[usable]
+        heights = plane_distance(p[top_mask], plate_n, plate_d) - offset[k[seen]]
         frame_offsets = offset
         reference = "frame"
     top_n, top_d = fit_plane(p[top_mask])
@@ -403,6 +454,7 @@ def measure_gauge_block(
         reference=reference,
         heights_plane=heights_plane,
         frame_offsets=frame_offsets,
+        normal_from=normal_from,
     )
 
 

@@ -1,0 +1,128 @@
+"""Where a random rig's ball diameter and gauge height errors come from (issues 17.5, 22.3).
+
+Reads what ``bench_rigs.py`` left in its cache (the quick captures, the workflow's stripes and
+estimated calibration, its reports) and triangulates each rig's ball and gauge scans again
+from the workflow's stripe centres with
+
+- the true or the estimated calibration (camera, planes and hand-eye together: the planes
+  and the hand-eye are found through the estimated camera's frame, so parts of them do not
+  mix), and
+- the arm's reported poses (unrefined) or its true poses (truth/ball_poses.parquet),
+
+then measures them as the report does (``measure_sphere``; ``measure_gauge_block`` with each
+height against the plate of its own frame; the workflow's settings). The last column is the
+workflow's own figure (estimated calibration, poses refined from the A-B crossings, fused
+cloud). The difference between columns is what each part adds.
+
+Usage: python benchmarks/bench_error_budget.py [--seeds 0,6]   (after bench_rigs.py for those seeds)
+Writes benchmarks/results/error_budget.txt.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import yaml
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(HERE))
+
+from bench_rigs import CACHE, parse_seeds  # noqa: E402
+
+RESULTS = HERE / "results"
+POSE = ("x", "y", "z", "qw", "qx", "qy", "qz")
+
+
+def errors(seed: int, scan: str, work: Path) -> dict[str, float]:
+    """Error (um) of rig ``seed``'s ball diameter (``scan`` "ball") or gauge height ("gauge")
+    for each calibration and pose source."""
+    from snakemake.utils import validate
+
+    from crossline.report import metrics as mt
+    from crossline.scan.triangulate import run_triangulate
+    from crossline.sim import write_true_calibration
+
+    name = f"random-small-{seed}"
+    cap0 = CACHE / "captures" / name
+    interim = CACHE / "work" / "data" / "interim" / name
+    cfg = yaml.safe_load((REPO / "config.yaml").read_text())
+    validate(cfg, str(REPO / "workflow" / "schemas" / "config.schema.yaml"))  # fills the defaults
+    met, pts = cfg["report"]["metrology"], cfg["points"]
+    truth = json.loads((cap0 / "truth.json").read_text())
+    tscan = truth["scans"][scan]
+    # a copy of the capture (its files must lie inside it), whose frames.csv is swapped
+    cap = work / name
+    shutil.copytree(cap0, cap)
+    reported = pd.read_csv(cap0 / "scans" / scan / "frames.csv")
+    true_poses = reported.copy()
+    tp = pd.read_parquet(cap0 / "truth" / f"{scan}_poses.parquet").set_index("frame")
+    for c in POSE:
+        true_poses[c] = tp.loc[true_poses["frame"], c].to_numpy()
+    cal = {"true": work / f"{name}-true-cal", "estimated": interim / "calibration"}
+    write_true_calibration(cap0, cal["true"])
+    out: dict[str, float] = {}
+    for cal_name, cal_dir in cal.items():
+        for pose_name, frames in (("reported", reported), ("true", true_poses)):
+            frames.to_csv(cap / "scans" / scan / "frames.csv", index=False)
+            points = work / f"{name}-{scan}-{cal_name}-{pose_name}.parquet"
+            run_triangulate(cap, scan, interim / "stripes" / f"{scan}.parquet",
+                            cal_dir / "camera.json", cal_dir / "lasers.json",
+                            cal_dir / "handeye.json", points, smooth_px=int(pts["smooth_px"]),
+                            sheet_curvature=bool(pts["sheet_curvature"]))
+            df = pd.read_parquet(points, columns=["frame", "x", "y", "z"])
+            p = df[["x", "y", "z"]].to_numpy()
+            if scan == "ball":
+                D = float(tscan["diameter"])
+                s = mt.measure_sphere(p, D, ransac_threshold_mm=float(met["sphere_ransac_mm"]),
+                                      trim_sigma=float(met["sphere_trim_sigma"]), seed=int(met["seed"]))
+                err = 2 * s.radius - D
+            else:
+                H = float(tscan["height"])
+                g = mt.measure_gauge_block(p, H, edge_margin_mm=float(met["edge_margin_mm"]),
+                                           band_mm=float(met["segment_band_mm"]), seed=int(met["seed"]),
+                                           frame=df["frame"].to_numpy())
+                err = g.figures()["mean_mm"] - H
+            out[f"{cal_name} calibration, {pose_name} poses"] = 1e3 * err
+    shutil.rmtree(cap)  # a quick capture is some 250 MB
+    m = json.loads((CACHE / "work" / "reports" / name / "metrics.json").read_text())
+    t = m["scans"][scan].get("truth") or {}
+    key = "diameter_error_mm" if scan == "ball" else "mean_error_mm"
+    out["workflow (estimated, refined poses)"] = 1e3 * float(t.get(key, np.nan))
+    out["arm sigma per axis"] = 1e3 * float(truth.get("arm_noise", {}).get("sigma_axis_mm", np.nan))
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", default="0,6", help="seeds of bench_rigs.py's cache, e.g. 0,6 or 0-19")
+    a = ap.parse_args(argv)
+    lines = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for scan, what in (("ball", "ball diameter"), ("gauge", "gauge height (each frame's plate)")):
+            rows = {}
+            for seed in parse_seeds(a.seeds):
+                rows[seed] = errors(seed, scan, Path(tmp))
+                print(scan, seed, {k: round(v, 1) for k, v in rows[seed].items()}, flush=True)
+            cols = list(next(iter(rows.values())))
+            lines += [f"{what} error (um) of random rigs' quick scans, re-triangulated from the "
+                      "workflow's stripe centres; the last figure is the arm's pose noise "
+                      "(truth.json)", "rig  " + " | ".join(cols)]
+            lines += [f"{s:<4} " + " | ".join(f"{r[c]:+.1f}" for c in cols) for s, r in rows.items()]
+    text = "\n".join(lines)
+    print(text)
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "error_budget.txt").write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
