@@ -236,7 +236,9 @@ def fuse_columns(
     if lab.dtype.kind in "OUS":
         lab = np.select([lab.astype(str) == "A", lab.astype(str) == "B"], [1, 2], 0)
     lab = lab.astype(np.uint8)
-    fr = np.asarray(frame, dtype=np.int64)
+    fr = np.asarray(frame)
+    if fr.dtype.kind not in "iu":
+        fr = fr.astype(np.int64)
     # a long scan's arrays are large: hold each once (the caller may hand them over)
     del points, laser, frame
     if cameras is None and points_cam is not None:
@@ -255,7 +257,7 @@ def fuse_columns(
                                       "(arm poses used as reported)"}
         log.info("pose refinement skipped: %s", stats["refine"]["skipped"])
     if len(p) < 2**31 and len(fr) and 0 <= fr.min() and fr.max() < 2**31:
-        fr = fr.astype(np.int32)  # what the cloud keeps; 4 B a point less from here on
+        fr = fr.astype(np.int32, copy=False)  # what the cloud keeps; 4 B a point less from here on
     arm = None
     if refine_prior is not None and not lacking:
         mask = None if widths is None else usable_centres(lab, widths, crossing_max_width_ratio)

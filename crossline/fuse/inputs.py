@@ -28,14 +28,15 @@ def read_points_columns(path: Path) -> dict[str, Any]:
     """The columns fuse needs from a points parquet, row group by row group into arrays.
 
     Returns ``xyz`` (N, 3) float64 base frame, ``laser`` (N,) uint8 codes (1 = A, 2 = B,
-    0 = other), ``frame`` (N,) int64 and ``width`` (N,) float32 (where the file has it) of the
-    points with finite x, y, z (and x_cam, y_cam, z_cam where it has those); ``non_finite``
-    counts the others. A file without frame, laser, x, y or z is refused, and one whose column
-    read is not of its kind (:func:`crossline.io.columns.column_type_problems`: frame whole
-    numbers, laser texts, the rest numbers; a number stored as text). Where the file has x_cam,
-    y_cam, z_cam, ``cameras`` = (frames, camera centres) from them (:class:`FrameMoments`)
-    instead of the points themselves. Strings never become Python objects: a long scan's
-    DataFrame would hold several hundred bytes a point.
+    0 = other), ``frame`` (N,) int32 (int64 where a frame number needs it) and ``width`` (N,)
+    float32 (where the file has it) of the points with finite x, y, z (and x_cam, y_cam,
+    z_cam where it has those); ``non_finite`` counts the others. A file without frame, laser,
+    x, y or z is refused, and one whose column read is not of its kind
+    (:func:`crossline.io.columns.column_type_problems`: frame whole numbers, laser texts, the
+    rest numbers; a number stored as text). Where the file has x_cam, y_cam, z_cam,
+    ``cameras`` = (frames, camera centres) from them (:class:`FrameMoments`) instead of the
+    points themselves. Strings never become Python objects: a long scan's DataFrame would
+    hold several hundred bytes a point.
     """
     import pyarrow.compute as pc
     import pyarrow.parquet as pq
@@ -58,8 +59,9 @@ def read_points_columns(path: Path) -> dict[str, Any]:
     if n == 0:
         raise StageError(f"{path}: has no points; nothing to fuse")
     cam = all(c in names for c in ("x_cam", "y_cam", "z_cam"))
+    # frames as int32 while they fit (4 B a point less for the whole stage)
     out: dict[str, Any] = {"xyz": np.empty((n, 3)), "laser": np.zeros(n, np.uint8),
-                           "frame": np.zeros(n, np.int64)}
+                           "frame": np.zeros(n, np.int32 if n < 2**31 else np.int64)}
     moments = FrameMoments() if cam else None
     if "width" in names:
         out["width"] = np.empty(n, np.float32)
@@ -80,7 +82,11 @@ def read_points_columns(path: Path) -> dict[str, Any]:
                          + 2 * np.asarray(pc.equal(lab, "B").fill_null(False)).astype(np.uint8))
                 out["laser"][k:k + m] = codes[ok]
             if "frame" in names:
-                out["frame"][k:k + m] = t["frame"].to_numpy()[ok]
+                fv = t["frame"].to_numpy()[ok]
+                if out["frame"].dtype == np.int32 and fv.size and (
+                        int(fv.max()) >= 2**31 or int(fv.min()) < -2**31):
+                    out["frame"] = out["frame"].astype(np.int64)
+                out["frame"][k:k + m] = fv
             if moments is not None:
                 moments.add(out["frame"][k:k + m], pc_cam[ok], xyz[ok])
             if "width" in names:

@@ -59,15 +59,20 @@ def usable_centres(laser: np.ndarray, width: np.ndarray,
     points, but must not decide a crossing. ``max_ratio`` 0 (or inf) keeps all; a NaN width is kept.
     """
     lab = np.asarray(laser)
-    w = np.asarray(width, dtype=np.float64)
+    w = np.asarray(width)
+    if w.dtype.kind != "f":
+        w = w.astype(np.float64)
     keep = np.ones(len(w), bool)
     if not max_ratio or not np.isfinite(max_ratio):
         return keep
-    for code in np.unique(lab):
+    # a long scan's widths as they are (float32: 4 B a point), each laser's copied once
+    codes = np.flatnonzero(np.bincount(lab)) if lab.dtype.kind in "iu" and len(lab) else np.unique(lab)
+    for code in codes:
         sel = lab == code
-        known = sel & np.isfinite(w)
-        if known.any():
-            keep[sel] = ~(w[sel] > max_ratio * np.median(w[known]))
+        ws = w[sel]
+        known = ws[np.isfinite(ws)]
+        if known.size:
+            keep[sel] = ~(ws > max_ratio * float(np.median(known, overwrite_input=True)))
     return keep
 
 
