@@ -174,6 +174,8 @@ class GaugeResult:
             "plate_d_mm": self.plate_d,
             "edge_margin_mm": self.edge_margin_mm,
             "reference": self.reference,
+            # "frames": the plate's normal from each frame's stripes; "plane": the plane fit's
+            "plate_normal_from": self.normal_from,
             **(
                 {
                     "plane_reference_mean_mm": float(self.heights_plane.mean()),
