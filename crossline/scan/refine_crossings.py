@@ -66,7 +66,7 @@ def usable_centres(laser: np.ndarray, width: np.ndarray,
     if not max_ratio or not np.isfinite(max_ratio):
         return keep
     # a long scan's widths as they are (float32: 4 B a point), each laser's copied once
-    codes = np.flatnonzero(np.bincount(lab)) if lab.dtype.kind in "iu" and len(lab) else np.unique(lab)
+    codes = np.flatnonzero(np.bincount(lab)) if lab.dtype.kind == "u" and len(lab) else np.unique(lab)
     for code in codes:
         sel = lab == code
         ws = w[sel]
