@@ -187,7 +187,7 @@ def test_crossings_by_slabs_are_those_of_the_whole_scan(ball):
         dg.append(abs(cr.gap[j[k]] - whole.gap[i]) if j else np.inf)
     dx, dg = np.array(dx), np.array(dg)
     assert len(whole.gap) > 1500 and abs(len(cr.gap) - len(whole.gap)) <= 0.01 * len(whole.gap)
-    assert np.mean(dx < 0.05) > 0.99 and np.median(dg) < 1e-4
+    assert np.mean(dx < 1e-3) > 0.99 and np.median(dg) < 1e-4
 
 
 def test_gap_is_the_normal_displacement_of_the_a_frame(plate):

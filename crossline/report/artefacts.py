@@ -244,14 +244,14 @@ def _edges(hull: ConvexHull, min_length: float = 0.5) -> np.ndarray:
     return hull.equations[keep]
 
 
-def gauge_groups(p: np.ndarray, frame: np.ndarray, plate_mask: np.ndarray,
+def gauge_groups(frame: np.ndarray, plate_mask: np.ndarray,
                  top_mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The plate's and the top face's points (M, 3) and their group (M,): one group per
-    frame and face, for :func:`normal_within_frames`."""
+    """Indices (M,) of the plate's then the top face's points and their group (M,): one
+    group per frame and face, for :func:`normal_within_frames`."""
     plate, top = np.flatnonzero(plate_mask), np.flatnonzero(top_mask)
     both = np.r_[plate, top]
     face = np.r_[np.zeros(plate.size, np.int64), np.ones(top.size, np.int64)]
-    return p[both], np.asarray(frame)[both].astype(np.int64) * 2 + face
+    return both, np.asarray(frame)[both].astype(np.int64) * 2 + face
 
 
 def normal_within_frames(points: np.ndarray, group: np.ndarray, weights: np.ndarray | None = None,
@@ -408,7 +408,8 @@ def measure_gauge_block(
         top_mask = np.zeros(len(p), dtype=bool)
         top_mask[top_idx[seen]] = True
         heights_plane = heights[seen]
-        n_frames = normal_within_frames(*gauge_groups(p, frame, plate_mask, top_mask))
+        both, group = gauge_groups(frame, plate_mask, top_mask)
+        n_frames = normal_within_frames(p[both], group)
         if n_frames is not None:
             # the plate's normal from the shape of each frame's stripes on the two faces, which
             # the arm's pose error of a frame (a shift of all its points) does not tilt; the

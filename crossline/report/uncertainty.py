@@ -44,7 +44,7 @@ import numpy as np
 from crossline.camera import Camera
 from crossline.geometry import fit_plane, invert_transform, rotvec_to_matrix
 from crossline.laser import LaserPlane, LaserPlanes
-from crossline.report.artefacts import normal_within_frames
+from crossline.report.artefacts import gauge_groups, normal_within_frames
 from crossline.scan.triangulate import triangulate
 
 __all__ = [
@@ -251,15 +251,15 @@ def gauge_figures(g: Any, points: np.ndarray, frame: np.ndarray | None, min_fram
         ufr, pinv = np.unique(fr[plate], return_inverse=True)
         tk = np.searchsorted(ufr, fr[top]).clip(0, max(len(ufr) - 1, 0))
 
-    within = per_frame and getattr(g, "normal_from", "plane") == "frames"
+    within = per_frame and g.normal_from == "frames"
     if within:
-        group = np.r_[fr[plate].astype(np.int64) * 2, fr[top].astype(np.int64) * 2 + 1]
+        both, group = gauge_groups(fr, plate_mask, top_mask)
 
     def figures(P: np.ndarray, w: np.ndarray) -> dict[str, float]:
         wp, wt = w[plate], w[top]
         n = None
         if within:  # the report's normal: each frame's stripes on both faces (artefacts)
-            n = normal_within_frames(np.r_[P[plate], P[top]], group, np.r_[wp, wt], min_ratio=0.0)
+            n = normal_within_frames(P[both], group, w[both], min_ratio=0.0)
         if n is None:
             n, d = _weighted_plane(P[plate], wp, g.plate_normal)
         else:
