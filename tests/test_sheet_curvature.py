@@ -133,6 +133,10 @@ def test_sheet_sigma_from_widths():
         w = np.sqrt((sf / g) ** 2 + 0.8**2) * (1 + rng.normal(0, 0.02, g.size))
         w[:50] *= 2.5  # merged stripes
         ws[name] = (g, w)
+    # a few centres where the sheet runs almost along the ray (|grad f| ~ 0; random rig 8's
+    # ball had one, and every sheet came out 0)
+    g, w = ws["B"]
+    ws["B"] = (np.r_[g, 1e-14, 3e-9], np.r_[w, 1.3, 1.1])
     sig, blur = sheet_sigma(ws)
     assert abs(sig["A"] - 0.12) < 0.004
     assert abs(sig["B"] - 0.2) < 0.006
