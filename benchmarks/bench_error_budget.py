@@ -40,45 +40,65 @@ from bench_rigs import CACHE, parse_seeds  # noqa: E402
 
 RESULTS = HERE / "results"
 POSE = ("x", "y", "z", "qw", "qx", "qy", "qz")
+NEAR_MM = 0.2  # a point belongs to a true surface within this distance
 
 
-def errors(seed: int, scan: str, work: Path) -> dict[str, float]:
-    """Error (um) of rig ``seed``'s ball diameter (``scan`` "ball") or gauge height ("gauge")
-    for each calibration and pose source."""
-    from snakemake.utils import validate
-
-    from crossline.report import metrics as mt
-    from crossline.scan.triangulate import run_triangulate
-    from crossline.sim import write_true_calibration
-
-    name = f"random-small-{seed}"
-    cap0 = CACHE / "captures" / name
-    interim = CACHE / "work" / "data" / "interim" / name
-    cfg = yaml.safe_load((REPO / "config.yaml").read_text())
-    validate(cfg, str(REPO / "workflow" / "schemas" / "config.schema.yaml"))  # fills the defaults
-    met, pts = cfg["report"]["metrology"], cfg["points"]
-    truth = json.loads((cap0 / "truth.json").read_text())
-    tscan = truth["scans"][scan]
-    # a copy of the capture (its files must lie inside it), whose frames.csv is swapped
-    cap = work / name
-    shutil.copytree(cap0, cap)
+def _poses(cap0: Path, scan: str) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The scan's reported frames.csv and the same with the arm's true poses."""
     reported = pd.read_csv(cap0 / "scans" / scan / "frames.csv")
     true_poses = reported.copy()
     tp = pd.read_parquet(cap0 / "truth" / f"{scan}_poses.parquet").set_index("frame")
     for c in POSE:
         true_poses[c] = tp.loc[true_poses["frame"], c].to_numpy()
+    return reported, true_poses
+
+
+def _points(cap: Path, interim: Path, scan: str, cal_dir: Path, frames: pd.DataFrame, out: Path,
+            pts: dict) -> pd.DataFrame:
+    """The scan triangulated from the workflow's stripe centres with ``cal_dir``'s calibration
+    and ``frames``' poses (written into the capture copy ``cap``), as the workflow would."""
+    from crossline.scan.triangulate import run_triangulate
+
+    frames.to_csv(cap / "scans" / scan / "frames.csv", index=False)
+    run_triangulate(cap, scan, interim / "stripes" / f"{scan}.parquet",
+                    cal_dir / "camera.json", cal_dir / "lasers.json",
+                    cal_dir / "handeye.json", out, smooth_px=int(pts["smooth_px"]),
+                    sheet_curvature=bool(pts["sheet_curvature"]))
+    return pd.read_parquet(out, columns=["frame", "laser", "x", "y", "z"])
+
+
+def _setup(seed: int, work: Path) -> tuple[str, Path, Path, dict, dict, Path]:
+    """Rig ``seed``'s name, cached capture, interim folder, truth, config and a capture copy
+    in ``work`` (its files must lie inside it; its frames.csv is swapped)."""
+    from snakemake.utils import validate
+
+    name = f"random-small-{seed}"
+    cap0 = CACHE / "captures" / name
+    cfg = yaml.safe_load((REPO / "config.yaml").read_text())
+    validate(cfg, str(REPO / "workflow" / "schemas" / "config.schema.yaml"))  # fills the defaults
+    cap = work / name
+    shutil.copytree(cap0, cap)
+    truth = json.loads((cap0 / "truth.json").read_text())
+    return name, cap0, CACHE / "work" / "data" / "interim" / name, truth, cfg, cap
+
+
+def errors(seed: int, scan: str, work: Path) -> dict[str, float]:
+    """Error (um) of rig ``seed``'s ball diameter (``scan`` "ball") or gauge height ("gauge")
+    for each calibration and pose source."""
+    from crossline.report import metrics as mt
+    from crossline.sim import write_true_calibration
+
+    name, cap0, interim, truth, cfg, cap = _setup(seed, work)
+    met = cfg["report"]["metrology"]
+    tscan = truth["scans"][scan]
+    reported, true_poses = _poses(cap0, scan)
     cal = {"true": work / f"{name}-true-cal", "estimated": interim / "calibration"}
     write_true_calibration(cap0, cal["true"])
     out: dict[str, float] = {}
     for cal_name, cal_dir in cal.items():
         for pose_name, frames in (("reported", reported), ("true", true_poses)):
-            frames.to_csv(cap / "scans" / scan / "frames.csv", index=False)
-            points = work / f"{name}-{scan}-{cal_name}-{pose_name}.parquet"
-            run_triangulate(cap, scan, interim / "stripes" / f"{scan}.parquet",
-                            cal_dir / "camera.json", cal_dir / "lasers.json",
-                            cal_dir / "handeye.json", points, smooth_px=int(pts["smooth_px"]),
-                            sheet_curvature=bool(pts["sheet_curvature"]))
-            df = pd.read_parquet(points, columns=["frame", "x", "y", "z"])
+            df = _points(cap, interim, scan, cal_dir, frames,
+                         work / f"{name}-{scan}-{cal_name}-{pose_name}.parquet", cfg["points"])
             p = df[["x", "y", "z"]].to_numpy()
             if scan == "ball":
                 D = float(tscan["diameter"])
@@ -101,6 +121,81 @@ def errors(seed: int, scan: str, work: Path) -> dict[str, float]:
     return out
 
 
+def signed_distances(points: np.ndarray, truth_scan: dict) -> dict[str, np.ndarray]:
+    """Each true surface of a scan and the signed distances (mm, + outside the part) of the
+    points within ``NEAR_MM`` of it: the ball's sphere, the gauge's top and plate faces, the
+    plate."""
+    out = {}
+    if "center_base" in truth_scan:
+        r = np.linalg.norm(points - np.asarray(truth_scan["center_base"]), axis=1)
+        out["ball"] = r - float(truth_scan["diameter"]) / 2
+    for key, surface in (("top_plane_base", "gauge top"), ("plate_plane_base", "gauge plate"),
+                         ("plane_base", "plate")):
+        if key in truth_scan:
+            n = np.asarray(truth_scan[key], dtype=np.float64)
+            sign = 1.0 if n[2] >= 0 else -1.0  # the faces look up: + above them
+            out[surface] = sign * (points @ n[:3] + n[3]) / np.linalg.norm(n[:3])
+    return {k: d[np.abs(d) < NEAR_MM] for k, d in out.items()}
+
+
+def offsets(seed: int, work: Path) -> dict[str, dict[str, float]]:
+    """Median signed offset (um) of rig ``seed``'s points from each true surface, and their
+    count, with the true calibration and poses (only the stripe centres can move them) and
+    with the estimated calibration and the true poses."""
+    from crossline.sim import write_true_calibration
+
+    name, cap0, interim, truth, cfg, cap = _setup(seed, work)
+    cal = {"true": work / f"{name}-true-cal-o", "estimated": interim / "calibration"}
+    write_true_calibration(cap0, cal["true"])
+    out: dict[str, dict[str, float]] = {}
+    for scan in ("ball", "gauge", "plate"):
+        if not (interim / "stripes" / f"{scan}.parquet").exists():
+            continue
+        _, true_poses = _poses(cap0, scan)
+        for cal_name, cal_dir in cal.items():
+            df = _points(cap, interim, scan, cal_dir, true_poses, work / f"{name}-{scan}-o.parquet",
+                         cfg["points"])
+            d = signed_distances(df[["x", "y", "z"]].to_numpy(), truth["scans"][scan])
+            for surface, v in d.items():
+                row = out.setdefault(surface, {})
+                row[f"{cal_name} calibration"] = 1e3 * float(np.median(v)) if v.size else np.nan
+                row["points"] = float(v.size)
+    shutil.rmtree(cap)
+    return out
+
+
+def offset_table(seeds: list[int], work: Path) -> list[str]:
+    """The offsets' table: per rig and surface, the median signed distance from the truth."""
+    rows = {}
+    for seed in seeds:
+        rows[seed] = offsets(seed, work)
+        print("offsets", seed, {k: {c: round(x, 1) for c, x in v.items()} for k, v in rows[seed].items()},
+              flush=True)
+    surfaces = ("ball", "gauge top", "gauge plate", "plate")
+    lines = ["median signed offset (um, + outside the part) of the points within "
+             f"{NEAR_MM} mm of each true surface, with the arm's true poses and the true | the "
+             "estimated calibration, re-triangulated from the workflow's stripe centres "
+             "(the target of issue 22: |offset| <= 1 um with the true calibration)",
+             "rig  " + "".join(f"{s:>20}" for s in surfaces)]
+    met = dict.fromkeys(surfaces, 0)
+    seen = dict.fromkeys(surfaces, 0)
+    for seed, r in rows.items():
+        cells = []
+        for surface in surfaces:
+            v = r.get(surface)
+            if v is None or not v.get("points"):
+                cells.append(f"{'-':>20}")
+                continue
+            t, e = v["true calibration"], v["estimated calibration"]
+            seen[surface] += 1
+            met[surface] += abs(t) <= 1.0
+            cells.append(f"{t:+7.1f}{'*' if abs(t) > 1.0 else ' '}| {e:+6.1f} ({int(v['points']):>5})")
+        lines.append(f"{seed:<4} " + "".join(f"{c:>20}" for c in cells))
+    lines.append("met  " + "".join(f"{f'{met[s]}/{seen[s]}':>20}" for s in surfaces)
+                 + "   (* = |offset| > 1 um with the true calibration)")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", default="0,6", help="seeds of bench_rigs.py's cache, e.g. 0,6 or 0-19")
@@ -117,6 +212,7 @@ def main(argv: list[str] | None = None) -> int:
                       "workflow's stripe centres; the last figure is the arm's pose noise "
                       "(truth.json)", "rig  " + " | ".join(cols)]
             lines += [f"{s:<4} " + " | ".join(f"{r[c]:+.1f}" for c in cols) for s, r in rows.items()]
+        lines += offset_table(parse_seeds(a.seeds), Path(tmp))
     text = "\n".join(lines)
     print(text)
     RESULTS.mkdir(exist_ok=True)
