@@ -121,27 +121,11 @@ def errors(seed: int, scan: str, work: Path) -> dict[str, float]:
     return out
 
 
-def signed_distances(points: np.ndarray, truth_scan: dict) -> dict[str, np.ndarray]:
-    """Each true surface of a scan and the signed distances (mm, + outside the part) of the
-    points within ``NEAR_MM`` of it: the ball's sphere, the gauge's top and plate faces, the
-    plate."""
-    out = {}
-    if "center_base" in truth_scan:
-        r = np.linalg.norm(points - np.asarray(truth_scan["center_base"]), axis=1)
-        out["ball"] = r - float(truth_scan["diameter"]) / 2
-    for key, surface in (("top_plane_base", "gauge top"), ("plate_plane_base", "gauge plate"),
-                         ("plane_base", "plate")):
-        if key in truth_scan:
-            n = np.asarray(truth_scan[key], dtype=np.float64)
-            sign = 1.0 if n[2] >= 0 else -1.0  # the faces look up: + above them
-            out[surface] = sign * (points @ n[:3] + n[3]) / np.linalg.norm(n[:3])
-    return {k: d[np.abs(d) < NEAR_MM] for k, d in out.items()}
-
-
 def offsets(seed: int, work: Path) -> dict[str, dict[str, float]]:
     """Median signed offset (um) of rig ``seed``'s points from each true surface, and their
     count, with the true calibration and poses (only the stripe centres can move them) and
     with the estimated calibration and the true poses."""
+    from crossline.report.scan_truth import surface_distances
     from crossline.sim import write_true_calibration
 
     name, cap0, interim, truth, cfg, cap = _setup(seed, work)
@@ -155,7 +139,7 @@ def offsets(seed: int, work: Path) -> dict[str, dict[str, float]]:
         for cal_name, cal_dir in cal.items():
             df = _points(cap, interim, scan, cal_dir, true_poses, work / f"{name}-{scan}-o.parquet",
                          cfg["points"])
-            d = signed_distances(df[["x", "y", "z"]].to_numpy(), truth["scans"][scan])
+            d = surface_distances(df[["x", "y", "z"]].to_numpy(), truth["scans"][scan], NEAR_MM)
             for surface, v in d.items():
                 row = out.setdefault(surface, {})
                 row[f"{cal_name} calibration"] = 1e3 * float(np.median(v)) if v.size else np.nan

@@ -171,19 +171,21 @@ def test_skew_response_predicts_the_gaussian_fit():
 
 @pytest.fixture(scope="module")
 def thick_ball(tmp_path_factory):
-    """Random rig 7's ball (a 0.7 mm thick sheet, 20 mm ball), with the true calibration and
-    the true arm poses: only the stripe centres can put the points off the ball."""
+    """Random rig 7's ball (a 0.7 mm thick sheet, 20 mm ball; its gauge and plate scans too),
+    with the true calibration and the true arm poses: only the stripe centres can put the
+    points off the true surfaces."""
     from crossline.sim import simulate, write_true_calibration
 
     root = tmp_path_factory.mktemp("thick")
-    cap = simulate(root / "cap", "random-small", seed=7, quick=True, scans=["ball"], parts=("scans",),
-                   progress=False)
+    cap = simulate(root / "cap", "random-small", seed=7, quick=True, scans=["ball", "gauge", "plate"],
+                   parts=("scans",), progress=False)
     truth = json.loads((cap / "truth.json").read_text())
-    frames = pd.read_csv(cap / "scans/ball/frames.csv")
-    tp = pd.read_parquet(cap / "truth/ball_poses.parquet").set_index("frame")
-    for c in ("x", "y", "z", "qw", "qx", "qy", "qz"):
-        frames[c] = tp.loc[frames["frame"], c].to_numpy()
-    frames.to_csv(cap / "scans/ball/frames.csv", index=False)
+    for scan in ("ball", "gauge", "plate"):
+        frames = pd.read_csv(cap / f"scans/{scan}/frames.csv")
+        tp = pd.read_parquet(cap / f"truth/{scan}_poses.parquet").set_index("frame")
+        for c in ("x", "y", "z", "qw", "qx", "qy", "qz"):
+            frames[c] = tp.loc[frames["frame"], c].to_numpy()
+        frames.to_csv(cap / f"scans/{scan}/frames.csv", index=False)
     cal = write_true_calibration(cap, root / "cal")
     stripes = root / "ball.parquet"
     run_extract_stripes(cap, "ball", stripes, extractor="gaussian", threshold=0.10)
@@ -219,3 +221,29 @@ def test_rendered_thick_sheet_ball(thick_ball, tmp_path):
     far = np.linalg.norm(a - c, axis=1) > 15.0  # the table around the ball
     assert far.sum() > 1000
     assert np.median(np.linalg.norm(b[far] - a[far], axis=1)) == 0.0
+
+
+def test_rendered_surfaces_carry_no_offset(thick_ball, tmp_path):
+    """Issue 22.3: with the true calibration and poses, the points of the ball, the gauge
+    block's top and plate faces and the plate sit on the true surfaces within 1 um (median
+    signed distance), extracted and triangulated as the workflow does; the ball without the
+    sheet-curvature correction sits 10 um inside (the offset this removes)."""
+    from crossline.report.scan_truth import surface_distances
+
+    cap, cal, ball_stripes, truth = thick_ball
+    offsets = {}
+    for scan in ("ball", "gauge", "plate"):
+        stripes = ball_stripes if scan == "ball" else tmp_path / f"{scan}.stripes.parquet"
+        if scan != "ball":
+            run_extract_stripes(cap, scan, stripes, extractor="gaussian", threshold=0.10)
+        for on in (False, True):
+            pts = tmp_path / f"{scan}-{on}.parquet"
+            run_triangulate(cap, scan, stripes, *cal, pts, smooth_px=7, sheet_curvature=on)
+            p = pd.read_parquet(pts, columns=["x", "y", "z"]).to_numpy()
+            for surface, d in surface_distances(p, truth["scans"][scan]).items():
+                assert d.size > 1000, surface
+                offsets[surface, on] = 1e3 * float(np.median(d))
+    assert {s for s, _ in offsets} == {"ball", "gauge top", "gauge plate", "plate"}
+    assert offsets["ball", False] < -6.0
+    for surface in ("ball", "gauge top", "gauge plate", "plate"):
+        assert abs(offsets[surface, True]) <= 1.0, (surface, offsets)

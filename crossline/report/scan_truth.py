@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["read_mesh", "uncertainty_coverage"]
+__all__ = ["read_mesh", "surface_distances", "uncertainty_coverage"]
 
 # the report stage's logger, as before the split: its records keep their name
 log = logging.getLogger("crossline.report.accuracy")
@@ -208,6 +208,24 @@ def _plane4(v: list, like: np.ndarray | None = None) -> tuple[np.ndarray, float]
     if like is not None and float(n @ like) < 0:
         n, d = -n, -d
     return n, d
+
+
+def surface_distances(points: np.ndarray, truth_scan: dict[str, Any],
+                      near_mm: float = 0.2) -> dict[str, np.ndarray]:
+    """Signed distances (mm, + outside the part) from each true surface of a scan (``ball``,
+    ``gauge top``, ``gauge plate``, ``plate``) of the ``points`` (base frame) within
+    ``near_mm`` of it: a surface's points in the median sit on it when nothing is biased."""
+    out = {}
+    if "center_base" in truth_scan and "diameter" in truth_scan:
+        r = np.linalg.norm(points - np.asarray(truth_scan["center_base"], dtype=np.float64), axis=1)
+        out["ball"] = r - float(truth_scan["diameter"]) / 2
+    up = np.array([0.0, 0.0, 1.0])  # the faces look up (the base frame's z): + above them
+    for key, surface in (("top_plane_base", "gauge top"), ("plate_plane_base", "gauge plate"),
+                         ("plane_base", "plate")):
+        if key in truth_scan:
+            n, d = _plane4(truth_scan[key], up)
+            out[surface] = points @ n + d
+    return {k: v[np.abs(v) < near_mm] for k, v in out.items()}
 
 
 def _gauge_truth(g: Any, P: np.ndarray, tscan: dict, nominal: float) -> dict[str, Any]:
