@@ -107,7 +107,13 @@ def errors(seed: int, scan: str, work: Path) -> dict[str, float]:
                 err = 2 * s.radius - D
             else:
                 H = float(tscan["height"])
-                g = mt.measure_gauge_block(p, H, edge_margin_mm=float(met["edge_margin_mm"]),
+                # which face is the plate: the report takes `up` from the cloud's normals, turned
+                # to the scanner; here the true plate's normal (the scanner looks down on it).
+                # Without it the larger face is the plate: on rig 14 the block's top, and its
+                # height with everything true +6.0 um instead of +3.3 um
+                up = np.asarray(tscan["plate_plane_base"][:3], dtype=np.float64)
+                g = mt.measure_gauge_block(p, H, up=up if up[2] > 0 else -up,
+                                           edge_margin_mm=float(met["edge_margin_mm"]),
                                            band_mm=float(met["segment_band_mm"]), seed=int(met["seed"]),
                                            frame=df["frame"].to_numpy())
                 err = g.figures()["mean_mm"] - H
