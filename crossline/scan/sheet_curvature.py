@@ -435,9 +435,9 @@ def sheet_sigma(samples: dict[str, tuple[np.ndarray, np.ndarray]]) -> tuple[dict
         xs = [1.0 / np.asarray(samples[k][0], dtype=np.float64) ** 2 for k in names]
     ys = [np.asarray(samples[k][1], dtype=np.float64) ** 2 for k in names]
     ok = [np.isfinite(x) & np.isfinite(y) for x, y in zip(xs, ys, strict=True)]
-    # Where the sheet meets the surface almost along the ray (|grad f| near 0) the model's
-    # profile is unbounded and no extractor reports it; one such x of 1e27 once set every
-    # sheet to 0 (the solve's cutoff is relative to its largest column)
+    # where the sheet meets the surface almost along the ray (|grad f| near 0) the model's
+    # profile is unbounded and no extractor reports it; left in, one such x dwarfs the other
+    # columns below the solve's cutoff (relative to its largest) and every sheet comes out 0
     ok = [o & (x <= X_SPREAD * np.median(x[o])) if o.any() else o
           for x, o in zip(xs, ok, strict=True)]
     xs = [x[o] for x, o in zip(xs, ok, strict=True)]

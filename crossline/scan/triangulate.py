@@ -419,10 +419,9 @@ def _median(values: Any, default: float) -> float:
 
 KAPPA_MIN = 0.01  # 1/mm: a flat plate's cells scatter up to ~0.007 with the points' noise
 KAPPA_MAX = 2.0  # 1/mm: a surface curved more than this is finer than the shape's cells
-# surfaces flatter than gives this bias (3 sigma_f^2 kappa) keep their centres; the estimate
+# surfaces flatter than gives this bias (3 sigma_f^2 kappa) keep their centres. The estimate
 # is a centre's at normal view: at grazing view the bias is several times it, and a cap's fit
-# turns a bias that changes with elevation into more diameter (the paper's 0.08 mm sheet on a
-# 25 mm ball: 0.4 um by the estimate, 0.2-1.2 um by elevation, -3.4 um in diameter uncorrected)
+# turns a bias that changes with elevation into several times that in diameter (docs/method.md)
 BIAS_FLOOR_MM = 0.0002
 SHEET_SAMPLE = 60000  # centres whose widths tell the sheet's thickness from the blur
 
