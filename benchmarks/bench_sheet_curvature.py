@@ -1,6 +1,7 @@
 """The sheet-curvature correction against truth, the ball alone (issues 17.6 and 22.3).
 
-For each random rig (``--preset random-small --quick``), the ball scan is rendered alone; its
+For each rig (``--preset random-small --quick`` by default; ``--preset paper`` draws the
+built-in rig with the seed), the ball scan is rendered alone; its
 frames.csv is given the arm's true poses and the calibration is the true one (written from
 truth.json), so that only the stripe centres can put the points off the ball. The centres are
 extracted once (the workflow's Gaussian fit) and triangulated with and without the correction
@@ -11,8 +12,9 @@ predicted shift against the centres' bias from the true centre lines (median px,
 profiles). ``--thin K`` renders the rig with its sheets K times as thick as drawn (the
 cause's check: the bias goes as the sheet's variance).
 
-Usage: python benchmarks/bench_sheet_curvature.py [--seeds 0,6,7] [--thin 0.35]
-Writes benchmarks/results/sheet_curvature.txt (and _thin<K>.txt with --thin).
+Usage: python benchmarks/bench_sheet_curvature.py [--seeds 0,3,6,7,8] [--thin 0.35] [--preset paper]
+Writes benchmarks/results/sheet_curvature.txt (_thin<K>.txt with --thin, _paper.txt with
+--preset paper).
 """
 
 from __future__ import annotations
@@ -40,13 +42,14 @@ CACHE = REPO / "benchmarks" / ".cache" / "sheet_curvature"
 RESULTS = REPO / "benchmarks" / "results"
 
 
-def _capture(seed: int, thin: float | None) -> Path:
-    root = CACHE / (f"rig{seed}" + ("" if thin is None else f"-thin{thin:g}"))
+def _capture(seed: int, thin: float | None, preset: str = "random-small") -> Path:
+    prefix = "rig" if preset == "random-small" else f"{preset}-"
+    root = CACHE / (f"{prefix}{seed}" + ("" if thin is None else f"-thin{thin:g}"))
     cap = root / "cap"
     if (cap / "truth.json").is_file():
         return root
     shutil.rmtree(root, ignore_errors=True)
-    rig = random_rig(seed, small=True)
+    rig = random_rig(seed, small=True) if preset == "random-small" else preset
     if thin is not None:
         thinner = {n: replace(las, waist_mm=las.waist_mm * thin) for n, las in rig.lasers.items()}
         rig = replace(rig, lasers=thinner)
@@ -79,8 +82,8 @@ def _centre_line_errors(points: pd.DataFrame, lines: pd.DataFrame) -> np.ndarray
     return np.where(points["axis"].to_numpy() == 0, err, np.nan)
 
 
-def run(seed: int, thin: float | None) -> list[str]:
-    root = _capture(seed, thin)
+def run(seed: int, thin: float | None, preset: str = "random-small") -> list[str]:
+    root = _capture(seed, thin, preset)
     cap, cal = root / "cap", root / "cal"
     truth = json.loads((cap / "truth.json").read_text())
     c = np.array(truth["scans"]["ball"]["center_base"])
@@ -130,17 +133,21 @@ def run(seed: int, thin: float | None) -> list[str]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--seeds", default="0,6,7")
+    ap.add_argument("--seeds", default="0,3,6,7,8")
     ap.add_argument("--thin", type=float, default=None, help="sheets this many times as thick")
+    ap.add_argument("--preset", default="random-small", help="random-small (default) or paper")
     a = ap.parse_args()
-    lines = ["sheet-curvature correction, ball alone, true calibration and poses (random-small quick)"
+    if a.thin is not None and a.preset != "random-small":
+        ap.error("--thin draws a random rig anew; it needs --preset random-small")
+    lines = [f"sheet-curvature correction, ball alone, true calibration and poses ({a.preset} quick)"
              + ("" if a.thin is None else f", sheets x{a.thin:g} as thick")]
     for s in (int(x) for x in a.seeds.split(",")):
-        lines.append(f"random-small-{s}")
-        lines += run(s, a.thin)
+        lines.append(f"{a.preset}-{s}")
+        lines += run(s, a.thin, a.preset)
         print("\n".join(lines[-5:]), flush=True)
     RESULTS.mkdir(exist_ok=True)
-    name = "sheet_curvature" + ("" if a.thin is None else f"_thin{a.thin:g}") + ".txt"
+    name = ("sheet_curvature" + ("" if a.thin is None else f"_thin{a.thin:g}")
+            + ("" if a.preset == "random-small" else f"_{a.preset}") + ".txt")
     (RESULTS / name).write_text("\n".join(lines) + "\n")
     print(f"wrote {RESULTS / name}")
 
