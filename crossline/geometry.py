@@ -8,7 +8,6 @@ coordinates in frame ``b`` to frame ``a`` (``p_a = T_a_b @ p_b``), quaternions a
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 __all__ = [
@@ -266,6 +265,8 @@ def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
 
     def residual(x: np.ndarray) -> np.ndarray:
         return np.linalg.norm(q - x[:3], axis=1) - x[3]
+
+    from scipy.optimize import least_squares  # imported here: the scan stages never fit a sphere
 
     res = least_squares(residual, np.r_[centre, r], method="lm", xtol=1e-15, ftol=1e-15)
     centre, r = res.x[:3], float(res.x[3])
