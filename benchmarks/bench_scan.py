@@ -554,9 +554,10 @@ def throughput(capture: Path, cal: tuple[Path, Path, Path], work: Path, rounds: 
     png_mb = float(np.mean([p.stat().st_size for p in paths]) / 1e6)
     res: dict = {"capture": str(capture), "scan": scan, "frames": n, "frame_shape": list(shape),
                  "png_mb_mean": png_mb, "frame_rate": rate, "rounds": rounds,
-                 "fast_decoder": fast_decoder_available(), "machine": "2 cores shared with others"}
+                 "fast_decoder": fast_decoder_available(), "load_before": os.getloadavg()[0]}
     say(f"== throughput on {capture.name} scan {scan}: {n} frames {shape[1]}x{shape[0]}, PNG "
-        f"{png_mb:.3f} MB each (mean), rig {rate:g} frames/s; machine shared with other users")
+        f"{png_mb:.3f} MB each (mean), rig {rate:g} frames/s; {os.cpu_count()} cores, load average "
+        f"(1 min) {res['load_before']:.2f} before")
     read_frame(paths[0], shape, transposed=True)  # compile / load the cached kernels
 
     decode_cpu: list[float] = []
@@ -640,6 +641,8 @@ def throughput(capture: Path, cal: tuple[Path, Path, Path], work: Path, rounds: 
                       "png_decode_frames_per_s": len(sample) / png_t,
                       "zstd1_decode_frames_per_s": len(sample) / zst_t}
     st = res["storage"]
+    res["load_after"] = os.getloadavg()[0]  # about 2 after this run's own jobs; more: others ran too
+    say(f"  load average (1 min) after the runs: {res['load_after']:.2f}")
     say(f"  decode only (read + fast PNG decode, transposed, 2 threads): "
         f"{res['decode_only_frames_per_s']:.0f} frames/s "
         f"({res['decode_only_1thread_frames_per_s']:.0f} on 1 thread)")
@@ -780,7 +783,7 @@ def main(argv=None) -> int:
 
         src = sensor_capture(a.sensor_frames)
         say(f"== scatter/gather speed-up: {a.speedup_frames} frames of {src.name} reused along a long "
-            f"arm path; machine shared with other users")
+            f"arm path; load average (1 min) {os.getloadavg()[0]:.2f} before")
         su = speedup(long_capture(src, a.speedup_frames), true_calibration(src, work / f"cal-{src.name}"),
                      work, a.rounds, say)
         write_json(RESULTS / "scan_speedup.json", su)
