@@ -9,11 +9,11 @@ scan (:func:`scan_data.sensor_capture`) reused in a fixed-seed order along a lon
 path (their images are reused, stated as such: the clouds are for time and memory, not
 accuracy). Each size runs the workflow's commands for one scan, each in its own process as
 Snakemake runs it (process start included), with the options of config.yaml: ``crossline
-check``, ``extract-stripes`` (``stripes.chunks`` jobs, run side by side), ``gather-stripes``,
-``triangulate``, ``fuse`` and ``report``, with the TRUE calibration (written from truth.json:
-the calibration stages do not depend on the scan's length). Per stage: wall time, CPU time,
-and peak resident memory (VmHWM of the stage's own process, read by a wrapper that calls
-``crossline.cli.main`` as the console script does). Results go to
+check``, ``extract-stripes`` (``stripes.chunks`` jobs, run side by side), ``gather-stripes``
+(with 2 or more chunks), ``triangulate``, ``fuse`` and ``report``, with the TRUE calibration
+(written from truth.json: the calibration stages do not depend on the scan's length). Per
+stage: wall time, CPU time, and peak resident memory (VmHWM of the stage's own process, read
+by a wrapper that calls ``crossline.cli.main`` as the console script does). Results go to
 benchmarks/results/scale.json, scale.txt and scale.png; a size is skipped when the time left
 (``--budget-s``) is less than the previous size's time scaled by frames.
 """
@@ -88,7 +88,9 @@ def stage_commands(capture: Path, interim: Path, processed: Path, chunks: int,
     """The workflow's commands for one scan (workflow/rules/*.smk with config.yaml's values)."""
     s, p, fu = CONFIG["stripes"], CONFIG["points"], CONFIG["fuse"]
     st = interim / "stripes" / scan
-    parts = [st / f"part{i}-of-{chunks}.parquet" for i in range(chunks)]
+    stripes = interim / "stripes" / f"{scan}.parquet"
+    # one chunk writes the scan's table itself, as the workflow's extract_stripes does
+    parts = [st / f"part{i}-of-{chunks}.parquet" for i in range(chunks)] if chunks > 1 else [stripes]
     extract = [["extract-stripes", str(capture), scan, "--out", str(parts[i]), "--extractor",
                 s["extractor"], "--threshold", str(s["threshold"]), "--min-width", str(s["min_width"]),
                 "--max-width", str(s["max_width"]), "--sigma", str(s["sigma"]), "--pad", str(s["pad"]),
@@ -96,14 +98,13 @@ def stage_commands(capture: Path, interim: Path, processed: Path, chunks: int,
                 "--fit-across", str(s["fit_across"]).lower(), "--min-peak", str(s["min_peak"]),
                 "--off-frames", s["off_frames"], "--chunk", f"{i}/{chunks}",
                 "--threads", "2"] for i in range(chunks)]
-    stripes = interim / "stripes" / f"{scan}.parquet"
     points = interim / "points" / f"{scan}.parquet"
     cal = interim / "calibration"
     frames = capture / "scans" / scan / "frames.csv"
     return {
         "check": [["check", str(capture), "--json", str(interim / "check.json")]],
         "extract": extract,
-        "gather": [["gather-stripes", *map(str, parts), "--out", str(stripes)]],
+        "gather": [["gather-stripes", *map(str, parts), "--out", str(stripes)]] if chunks > 1 else [],
         "triangulate": [[
             "triangulate", str(capture), scan, "--stripes", str(stripes), "--camera",
             str(cal / "camera.json"), "--lasers", str(cal / "lasers.json"), "--handeye",
@@ -168,6 +169,8 @@ def run_size(src: Path, n: int, chunks: int, stages: tuple[str, ...], reuse: boo
     res: dict = {"frames": n, "chunks": chunks, "stages": {}}
     for stage in stages:
         jobs = cmds[stage]
+        if not jobs:  # gather, with one chunk: the workflow has no such job
+            continue
         logs = [work / "logs" / f"{stage}{i}.log" for i in range(len(jobs))]
         r = run_parallel(jobs, logs)
         res["stages"][stage] = {"wall_s": max(x["wall_s"] for x in r),

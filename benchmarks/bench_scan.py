@@ -493,6 +493,9 @@ def workflow_run(capture: Path, cal: tuple[Path, Path, Path], root: Path, scan: 
         rs = run_parallel(ext, [root / f"extract{i}.log" for i in range(len(ext))], pre)
         out["extract"] = {"wall_s": max(r["wall_s"] for r in rs), "cpu_s": sum(r["cpu_s"] for r in rs)}
     for st in ("gather", "triangulate"):
+        if not cmds[st]:  # gather, with one chunk: the workflow has no such job
+            out[st] = {"wall_s": 0.0, "cpu_s": 0.0}
+            continue
         r = run_parallel(cmds[st], [root / f"{st}.log"], pre)[0]
         out[st] = {"wall_s": r["wall_s"], "cpu_s": r["cpu_s"]}
     out["wall_s"] = sum(v["wall_s"] for v in out.values())
@@ -531,8 +534,9 @@ def throughput(capture: Path, cal: tuple[Path, Path, Path], work: Path, rounds: 
 
     - decode only: every frame read from disk and decoded (the stage's decoder, transposed as
       the extractor takes it) on 2 threads, in this process (no process start);
-    - end to end: ``crossline extract-stripes`` (2 threads, 1 chunk), ``gather-stripes`` and
-      ``triangulate``, each a fresh process with config.yaml's options (bench_scale's commands);
+    - end to end: ``crossline extract-stripes`` (2 threads, 1 chunk: it writes the scan's table,
+      no gather job) and ``triangulate``, each a fresh process with config.yaml's options
+      (bench_scale's commands);
     - scatter/gather: the same on 1 core (``taskset -c 0``, 1 thread) and with 2 chunk jobs of
       1 thread side by side (2 cores), as Snakemake runs ``stripes.chunks: 2``;
     - the split: decode-only and extraction in this process on 1 thread, so extraction's share

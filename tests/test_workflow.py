@@ -161,8 +161,7 @@ def test_changing_extractor_reruns_extraction_onward(done_workdir: Path, tmp_pat
     n = len(json.loads((done_workdir / "data/interim/q/check.json").read_text())["scans"])
     jobs = _rerun_set(done_workdir, tmp_path, "stripes", "extractor", "steger")
     assert jobs == {
-        "extract_stripes": n, "gather_stripes": n, "triangulate_points": n, "fuse_points": n,
-        "render_report": 1,
+        "extract_stripes": n, "triangulate_points": n, "fuse_points": n, "render_report": 1,
     }
 
 
@@ -187,7 +186,7 @@ def test_editing_a_module_reruns_its_stages(done_workdir: Path, tmp_path: Path) 
     jobs = planned_jobs(wd)
     # the laser-plane calibration centres its stripes with the same extractor
     assert jobs == {
-        "calibrate_lasers": 1, "extract_stripes": n, "gather_stripes": n,
+        "calibrate_lasers": 1, "extract_stripes": n,
         "triangulate_points": n, "fuse_points": n, "render_report": 1,
         "calibration_certificate": 1,
     }
@@ -332,7 +331,7 @@ def test_bad_captures_beside_a_good_one(done_workdir: Path, tmp_path: Path) -> N
     assert "scan gauge: no stripe centre could be labelled A or B" in log(
         "scan_faults", "triangulate_points/gauge.log")
     assert "scan plate: no stripe found in any of its 24 frames" in log(
-        "scan_faults", "extract_stripes/plate.part0-of-1.log")
+        "scan_faults", "extract_stripes/plate.log")
     points = interim / "scan_faults/points"
     assert not (points / "gauge.parquet").exists() and not (points / "plate.parquet").exists()
     assert (points / "ball.parquet").is_file() and (points / "part.parquet").is_file()

@@ -162,12 +162,26 @@ def scan_frames_input(wildcards):
     return [f"{root}/frames.csv", f"{root}/frames"]
 
 
+CHUNKS = config["stripes"]["chunks"]
+# what one extraction job writes: the scan's stripe table, or one chunk's part of it
+STRIPES_OUT = (
+    "data/interim/{capture}/stripes/{scan}.parquet"
+    if CHUNKS == 1
+    else "data/interim/{capture}/stripes/{scan}/part{i}-of-{n}.parquet"
+)
+STRIPES_TAG = "{scan}" if CHUNKS == 1 else "{scan}.part{i}-of-{n}"
+
+
+def stripe_chunk(wildcards):
+    """The ``--chunk i/n`` of one extraction job."""
+    return f"{wildcards.i}/{wildcards.n}" if CHUNKS > 1 else "0/1"
+
+
 def stripe_chunks(wildcards):
     """The chunk files gathered into one scan's stripe table."""
-    n = config["stripes"]["chunks"]
     return [
-        f"data/interim/{wildcards.capture}/stripes/{wildcards.scan}/part{i}-of-{n}.parquet"
-        for i in range(n)
+        f"data/interim/{wildcards.capture}/stripes/{wildcards.scan}/part{i}-of-{CHUNKS}.parquet"
+        for i in range(CHUNKS)
     ]
 
 

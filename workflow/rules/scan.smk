@@ -1,4 +1,6 @@
 # Scan stages: stripe centres (scattered over chunks of frames), then labels and 3-D points.
+# With one chunk (the default) extraction writes the scan's stripe table itself; with more,
+# each chunk writes a part and gather_stripes joins them (the same bytes either way).
 
 
 rule extract_stripes:
@@ -7,8 +9,9 @@ rule extract_stripes:
         frames=scan_frames_input,
         code=code("crossline.scan.stripes"),
     output:
-        part="data/interim/{capture}/stripes/{scan}/part{i}-of-{n}.parquet",
+        stripes=STRIPES_OUT,
     params:
+        chunk=stripe_chunk,
         extractor=config["stripes"]["extractor"],
         threshold=config["stripes"]["threshold"],
         min_width=config["stripes"]["min_width"],
@@ -21,9 +24,9 @@ rule extract_stripes:
         min_peak=config["stripes"]["min_peak"],
         off_frames=config["stripes"]["off_frames"],
     log:
-        "logs/{capture}/extract_stripes/{scan}.part{i}-of-{n}.log",
+        f"logs/{{capture}}/extract_stripes/{STRIPES_TAG}.log",
     benchmark:
-        "logs/{capture}/benchmarks/extract_stripes/{scan}.part{i}-of-{n}.tsv"
+        f"logs/{{capture}}/benchmarks/extract_stripes/{STRIPES_TAG}.tsv"
     threads: 2
     resources:
         mem_mb=1000,
@@ -31,27 +34,29 @@ rule extract_stripes:
         "../envs/crossline.yaml"
     shell:
         "crossline extract-stripes data/raw/{wildcards.capture} {wildcards.scan} "
-        "--out {output.part} --extractor {params.extractor} --threshold {params.threshold} "
+        "--out {output.stripes} --extractor {params.extractor} --threshold {params.threshold} "
         "--min-width {params.min_width} --max-width {params.max_width} --sigma {params.sigma} "
         "--pad {params.pad} --fit-pad {params.fit_pad} --relative-noise {params.relative_noise} "
         "--fit-across {params.fit_across} --min-peak {params.min_peak} --off-frames {params.off_frames} "
-        "--chunk {wildcards.i}/{wildcards.n} --threads {threads} > {log} 2>&1"
+        "--chunk {params.chunk} --threads {threads} > {log} 2>&1"
 
 
-rule gather_stripes:
-    input:
-        parts=stripe_chunks,
-        code=code("crossline.scan.stripes"),
-    output:
-        stripes="data/interim/{capture}/stripes/{scan}.parquet",
-    log:
-        "logs/{capture}/gather_stripes/{scan}.log",
-    resources:
-        mem_mb=2000,
-    conda:
-        "../envs/crossline.yaml"
-    shell:
-        "crossline gather-stripes {input.parts} --out {output.stripes} > {log} 2>&1"
+if CHUNKS > 1:
+
+    rule gather_stripes:
+        input:
+            parts=stripe_chunks,
+            code=code("crossline.scan.stripes"),
+        output:
+            stripes="data/interim/{capture}/stripes/{scan}.parquet",
+        log:
+            "logs/{capture}/gather_stripes/{scan}.log",
+        resources:
+            mem_mb=2000,
+        conda:
+            "../envs/crossline.yaml"
+        shell:
+            "crossline gather-stripes {input.parts} --out {output.stripes} > {log} 2>&1"
 
 
 rule triangulate_points:
