@@ -304,3 +304,37 @@ def test_workflow_centre_lines_meet_the_centre_target(rig, request, tmp_path):
         rms[win] = float(np.sqrt(np.mean(e**2)))
     assert rms[cfg["points"]["smooth_px"]] <= 0.05, rms
     assert rms[cfg["points"]["smooth_px"]] < 0.9 * rms[1], rms  # the smoothing does the work
+
+
+def test_near_vertical_stripe_is_labelled_and_triangulated(tmp_path):
+    """Random rig 30 crosses a near-vertical stripe (laser A, 96 deg) with a near-horizontal
+    one: A's centres are profiled along the image rows, and are linked, trimmed, smoothed
+    and matched to their references down the rows. Before, every one of them was lost (no
+    A point at all) and the gauge, seen by B's parallel stripes alone, measured 30 um high
+    with the arm's reported poses. Here with the true calibration and poses: both lasers'
+    points lie on the true faces, and the block's height is right."""
+    from crossline.report.artefacts import measure_gauge_block
+    from crossline.report.scan_truth import surface_distances
+    from tests.test_sheet_curvature import _true_capture
+
+    cap, cal, truth = _true_capture(tmp_path, 30, ["gauge"])
+    stripes = tmp_path / "gauge.stripes.parquet"
+    run_extract_stripes(cap, "gauge", stripes, extractor="gaussian", threshold=0.10)
+    pts = tmp_path / "gauge.parquet"
+    meta = run_triangulate(cap, "gauge", stripes, *cal, pts, smooth_px=7)
+    p = pd.read_parquet(pts)
+    n = p.groupby("laser").size()
+    assert n["A"] > 0.4 * n["B"], n.to_dict()
+    assert (p.loc[p.laser == "A", "axis"] == 1).mean() > 0.95  # profiled along the rows
+    assert meta["counts"]["dropped"]["unmatched"] < 0.02 * meta["counts"]["centres_in"]
+    xyz = p[["x", "y", "z"]].to_numpy()
+    g = truth["scans"]["gauge"]
+    for laser in ("A", "B"):
+        d = surface_distances(xyz[p.laser.to_numpy() == laser], g)
+        assert d["gauge top"].size > 500 and d["gauge plate"].size > 500, laser
+        for face in ("gauge top", "gauge plate"):
+            assert abs(np.median(d[face])) < 0.002, (laser, face)
+    up = np.asarray(g["plate_plane_base"][:3])
+    res = measure_gauge_block(xyz, g["height"], up=up if up[2] > 0 else -up, frame=p.frame.to_numpy())
+    assert res.normal_from == "frames"
+    assert abs(res.figures()["mean_mm"] - g["height"]) < 0.002

@@ -17,7 +17,33 @@ import numpy as np
 
 from crossline.jit import jit
 
-__all__ = ["blocked_ends", "half_amplitude_columns", "link_traces", "smooth_along", "trace_position"]
+__all__ = ["ROW_OFFSET", "blocked_ends", "half_amplitude_columns", "image_space", "link_traces",
+           "smooth_along", "trace_position", "trace_space"]
+
+# where the row-profiled centres' columns start in trace space: beyond any image column, so
+# that a steep stripe's trace never meets a column-profiled one (sensors are < 2**17 px wide)
+ROW_OFFSET = float(1 << 17)
+
+
+def trace_space(u: np.ndarray, v: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centres as (column, row) of the grid their profiles were taken on, where every stripe
+    is a function of an integer column: a centre profiled along its image column (``axis``
+    0) keeps ``(u, v)``; one profiled along its row (1: a steep stripe, ``v`` an integer) is
+    ``(v + ROW_OFFSET, u)``, so its trace runs down the image rows. Linking, trimming,
+    smoothing and the A/B matching work on these; :func:`image_space` turns a row back."""
+    steep = np.asarray(axis) == 1
+    u = np.asarray(u, dtype=np.float64)
+    v = np.asarray(v, dtype=np.float64)
+    return np.where(steep, v + ROW_OFFSET, u), np.where(steep, u, v)
+
+
+def image_space(u: np.ndarray, v: np.ndarray, axis: np.ndarray,
+                row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Image ``(u, v)`` of centres whose trace-space row (:func:`trace_space`) is now ``row``
+    (e.g. smoothed): the profiled coordinate takes it, the other stays."""
+    steep = np.asarray(axis) == 1
+    return (np.where(steep, row, np.asarray(u, dtype=np.float64)),
+            np.where(steep, np.asarray(v, dtype=np.float64), row))
 
 
 def _keys(frame: np.ndarray, laser: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

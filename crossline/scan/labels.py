@@ -274,12 +274,16 @@ class Disambiguator:
         return last.u[o], pv[o]
 
     def process(
-        self, frame: int, state: str, u: np.ndarray, v: np.ndarray, flags: np.ndarray
+        self, frame: int, state: str, u: np.ndarray, v: np.ndarray, flags: np.ndarray,
+        image: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Label one frame's centres: (label per centre: 'A', 'B' or '' if dropped, distance px).
 
         The distance is to the matched (predicted) reference for AB frames, NaN otherwise.
         Frames must come in time order, every frame of the scan, with or without centres.
+        ``u, v`` are where the centres are matched, column by column: the image's, or the
+        trace space of :func:`crossline.scan.centreline.trace_space`, with the image's own
+        ``(u, v)`` in ``image`` (the cross's order is a matter of the image).
         """
         c = self.counts
         n = u.size
@@ -309,7 +313,7 @@ class Disambiguator:
         merged = (flags & MERGED) != 0
         c["dropped"]["merged"] += int(merged.sum())
         if missing:  # no single-laser frame to go by: the order of the cross decides
-            return self._by_order(frame, u, v, merged, label, dist)
+            return self._by_order(frame, u, v, merged, label, dist, (u, v) if image is None else image)
         lab, d = self._match(u, v, merged, ref)
         if self.track:  # this frame's labelled stripes: the freshest reference for the next
             for laser, code in (("A", 1), ("B", 2)):
@@ -360,7 +364,8 @@ class Disambiguator:
         return lab, d
 
     def _by_order(self, frame: int, u: np.ndarray, v: np.ndarray, merged: np.ndarray,
-                  label: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                  label: np.ndarray, dist: np.ndarray,
+                  image: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Label an AB frame without single-laser references: the cross's order and the frames before.
 
         The stripe pieces of :meth:`CrossOrder.labels` are one laser each. A piece whose
@@ -375,7 +380,7 @@ class Disambiguator:
         co = c["labelled_by_order"]
         co["frames"] += 1
         n = u.size
-        by_order, piece = self.order.labels(u, v, ~merged)
+        by_order, piece = self.order.labels(*image, ~merged)
         ref = {laser: self._ordered_reference(laser, frame) for laser in ("A", "B")}
         if any(r is not None for r in ref.values()):  # one laser's stripe may not be seen yet
             none = (np.empty(0), np.empty(0))

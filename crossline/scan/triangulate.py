@@ -29,7 +29,14 @@ from crossline.geometry import transform_points
 from crossline.io.atomic import atomic_path, write_json
 from crossline.io.values import rigid_transform
 from crossline.laser import LaserPlanes
-from crossline.scan.centreline import blocked_ends, link_traces, smooth_along, trace_position
+from crossline.scan.centreline import (
+    blocked_ends,
+    image_space,
+    link_traces,
+    smooth_along,
+    trace_position,
+    trace_space,
+)
 from crossline.scan.cross_order import CrossOrder
 from crossline.scan.labels import Disambiguator, check_pattern, reference_gap
 from crossline.scan.sheet_curvature import (
@@ -291,6 +298,9 @@ def run_triangulate(
                     v = t.column("v").to_numpy()
                     flags = t.column("flags").to_numpy()
                     _check_stripe_rows(stripes, frame, u, v)
+                    axis = t.column("axis").to_numpy()
+                    # a steep stripe's centres (profiled along the rows) are followed down the rows
+                    tu, tv = trace_space(u, v, axis)
                     try:
                         pos = np.fromiter((pos_of[f] for f in np.unique(frame).tolist()), np.int64)
                     except KeyError as exc:
@@ -304,7 +314,8 @@ def run_triangulate(
                         if p < next_pos:
                             raise StageError(f"{stripes}: frames out of order at frame {f}")
                         feed_until(p)
-                        lab, dd = dis.process(f, str(sc.lasers[p]), u[a:b], v[a:b], flags[a:b])
+                        lab, dd = dis.process(f, str(sc.lasers[p]), tu[a:b], tv[a:b], flags[a:b],
+                                              image=(u[a:b], v[a:b]))
                         label[a:b] = lab
                         dist[a:b] = dd
                         next_pos = p + 1
@@ -312,25 +323,26 @@ def run_triangulate(
                     if not keep.any():
                         continue
                     idx = np.flatnonzero(keep)
-                    prev = link_traces(frame[idx], label[idx], u[idx], v[idx])
-                    trace, from_start, to_end = trace_position(prev, u[idx], v[idx])
+                    prev = link_traces(frame[idx], label[idx], tu[idx], tv[idx])
+                    trace, from_start, to_end = trace_position(prev, tu[idx], tv[idx])
                     # a trace that stops at the crossing of A and B (a merged run next to its end) has
                     # not reached the end of its stripe: that end is not trimmed
                     blob = np.flatnonzero((flags & MERGED) != 0)
-                    start_open, end_open = blocked_ends(trace, frame[idx], u[idx], v[idx], frame[blob],
-                                                        u[blob], v[blob])
+                    start_open, end_open = blocked_ends(trace, frame[idx], tu[idx], tv[idx], frame[blob],
+                                                        tu[blob], tv[blob])
                     from_start = np.where(start_open, np.inf, from_start)
                     to_end = np.where(end_open, np.inf, to_end)
                     inner = np.minimum(from_start, to_end) >= end_trim_px
                     # a trace of a few columns is no stripe, whatever stops it (a glint, a stray centre)
                     inner &= np.bincount(trace, minlength=trace.size)[trace] >= MIN_TRACE_COLUMNS
-                    v_used, whole = smooth_along(trace, u[idx], v[idx], smooth_px)
+                    row_used, whole = smooth_along(trace, tu[idx], tv[idx], smooth_px)
                     trimmed["stripe_end"] += int((~inner).sum())
                     trimmed["smoothing_window"] += int((inner & ~whole).sum())
-                    v_used, idx = v_used[inner & whole], idx[inner & whole]
+                    row_used, idx = row_used[inner & whole], idx[inner & whole]
                     if idx.size == 0:
                         continue
-                    uv = np.stack([u[idx], v_used], axis=1)
+                    u_used, v_used = image_space(u[idx], v[idx], axis[idx], row_used)
+                    uv = np.stack([u_used, v_used], axis=1)
                     lab = label[idx]
                     p_cam = triangulate(cam, planes, uv, lab)
                     # the scan position of each point
@@ -341,7 +353,7 @@ def run_triangulate(
                         "frame": sel.column("frame"),
                         "laser": _LASER_NAMES.take(pa.array((lab == "B").astype(np.int8))),
                         "lasers": sel.column("lasers"),
-                        "u": sel.column("u"),
+                        "u": pa.array(u_used),
                         "v": pa.array(v_used),
                         "x_cam": pa.array(p_cam[:, 0]), "y_cam": pa.array(p_cam[:, 1]),
                         "z_cam": pa.array(p_cam[:, 2]),
