@@ -535,6 +535,34 @@ def test_gauge_plate_normal_from_each_frames_stripes():
     assert g1.normal_from == "plane" and abs(g1.figures()["mean_mm"] - 10.0) > 5e-3
 
 
+def test_gauge_plate_normal_from_short_crossing_stripes():
+    """In every frame a second laser's stripe crosses the first at right angles on the block's
+    top only, 3 mm long (a near-vertical stripe on a narrow block): it spans the plane less
+    than 1 % as much as the long stripes do, yet tells its normal to within its noise; the
+    frames' normal is taken and the drift does not tilt the heights."""
+    from crossline.report.artefacts import gauge_groups
+
+    pts, frame = _swept_gauge(crossed=False)
+    rng = np.random.default_rng(4)
+    extra = []
+    for f, x0 in enumerate(np.linspace(-20, 20, 60)):
+        y = rng.uniform(-1.5, 1.5, 60)
+        x = np.full(60, 0.5 * x0)  # along y, on the top (|x| < 8)
+        z = 10.0 + 0.04 * (x0 + 20) / 40 + rng.normal(scale=0.001, size=60)
+        extra.append((np.column_stack([x, y, z]), np.full(60, f)))
+    pts = np.vstack([pts, *(e[0] for e in extra)])
+    frame = np.concatenate([frame, *(e[1] for e in extra)])
+    g = mt.measure_gauge_block(pts, 10.0, frame=frame)
+    both, group = gauge_groups(frame, g.plate_mask, g.top_mask)
+    q = pts[both]
+    for k in np.unique(group):
+        q[group == k] -= q[group == k].mean(0)
+    ev = np.linalg.eigvalsh(q.T @ q)
+    assert ev[1] < 0.01 * ev[2]  # spanned, but by short stripes
+    assert g.normal_from == "frames"
+    assert g.figures()["mean_mm"] == pytest.approx(10.0, abs=3e-4)
+
+
 def test_gauge_referenced_needs_plate_in_the_same_frames():
     pts, _ = gauge_scene(seed=12)
     on_top = pts[:, 2] > 10

@@ -244,6 +244,14 @@ def _edges(hull: ConvexHull, min_length: float = 0.5) -> np.ndarray:
     return hull.equations[keep]
 
 
+# the largest standard error of a gauge's plate normal from its frames' stripes: 1e-4 rad is
+# 0.1 um of height per mm between a top point and the plate points of its frame
+MAX_TILT_RAD = 1e-4
+# the least spread of a gauge scan's stripe directions that counts as crossed (see
+# normal_within_frames): parallel stripes give 0, crossed ones their share times sin^2
+MIN_DIRECTION_SPREAD = 0.01
+
+
 def gauge_groups(frame: np.ndarray, plate_mask: np.ndarray,
                  top_mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Indices (M,) of the plate's then the top face's points and their group (M,): one
@@ -255,7 +263,8 @@ def gauge_groups(frame: np.ndarray, plate_mask: np.ndarray,
 
 
 def normal_within_frames(points: np.ndarray, group: np.ndarray, weights: np.ndarray | None = None,
-                         min_points: int = 20, min_ratio: float = 100.0) -> np.ndarray | None:
+                         min_points: int = 20, min_ratio: float = 100.0,
+                         max_tilt_rad: float = MAX_TILT_RAD) -> np.ndarray | None:
     """Unit normal of parallel planes scanned frame by frame, from each ``group``'s points (a
     frame's points on one of the planes) about their own centroid, so that a frame's rigid
     shift drops out; None where the groups' stripes do not span the plane (all parallel: a
@@ -263,10 +272,15 @@ def normal_within_frames(points: np.ndarray, group: np.ndarray, weights: np.ndar
 
     The scatter of the groups' points about their centroids has two large eigenvalues when
     crossed stripes span the plane; the normal is then its smallest eigenvector. Groups of
-    fewer than ``min_points`` points are left out. Spanning means a middle eigenvalue at
-    least ``min_ratio`` times the smallest (the points' noise) and at least 1 % of the
-    largest (stripes crossing at some 11 degrees or more; parallel stripes leave it at their
-    noise); ``weights`` (M,) weigh the points (a resampling's).
+    fewer than ``min_points`` points are left out. Spanning means three things: the groups'
+    own stripe directions are not all parallel (the second eigenvalue of their
+    point-weighted directions' scatter at least ``MIN_DIRECTION_SPREAD`` of the first: some
+    10 % of the points on stripes crossing the others at 20 deg or more), the scatter's
+    middle eigenvalue is ``min_ratio`` times its smallest (the points' noise), and the
+    normal's tilt about the least spanned direction has a standard error ``sqrt(ev0 / (dof
+    ev1))`` of at most ``max_tilt_rad``: short crossing stripes (one laser's on a narrow
+    block's top only) tell it well. ``min_ratio = 0`` skips the checks; ``weights`` (M,)
+    weigh the points (a resampling's).
     """
     w = np.ones(len(points)) if weights is None else np.asarray(weights, dtype=np.float64)
     _, inv, cnt = np.unique(np.asarray(group), return_inverse=True, return_counts=True)
@@ -279,8 +293,17 @@ def normal_within_frames(points: np.ndarray, group: np.ndarray, weights: np.ndar
     c = np.stack([np.bincount(inv, w * q[:, i]) for i in range(3)], 1) / sw[:, None]
     q -= c[inv]
     ev, V = np.linalg.eigh((q * w[:, None]).T @ q)
-    if min_ratio > 0 and not (ev[1] > min_ratio * max(ev[0], 1e-30) and ev[1] >= 0.01 * ev[2]):
-        return None
+    if min_ratio > 0:
+        # each group's stripe direction: the first eigenvector of its own scatter
+        S = np.stack([np.bincount(inv, w * q[:, i] * q[:, j], sw.size) for i in range(3)
+                      for j in range(3)], 1).reshape(-1, 3, 3)
+        d = np.linalg.eigh(S)[1][:, :, 2]
+        lam = np.linalg.eigvalsh(np.einsum("g,gi,gj->ij", sw, d, d))
+        dof = max(float(w.sum()) - 3.0 * sw.size, 1.0)  # each group's centroid took 3
+        tilt_se = np.sqrt(max(ev[0], 0.0) / (dof * max(ev[1], 1e-300)))
+        if not (lam[1] >= MIN_DIRECTION_SPREAD * lam[2] and ev[1] > min_ratio * max(ev[0], 1e-30)
+                and tilt_se <= max_tilt_rad):
+            return None
     return V[:, 0]
 
 
