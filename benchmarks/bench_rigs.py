@@ -9,7 +9,7 @@ stage is reported, not fatal), and the figures are read back from each report's
 `metrics.json` (its validation part compares the estimates with `truth.json`).
 
 Usage: python benchmarks/bench_rigs.py [--seeds 0-19] [--preset random-small] [--full] [--cores 2]
-Writes benchmarks/results/rigs.txt and rigs.json.
+Writes benchmarks/results/rigs.txt and rigs.json (``--tag _x``: rigs_x.txt and rigs_x.json).
 """
 
 from __future__ import annotations
@@ -216,6 +216,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--preset", default="random-small", help="random-small (default) or random")
     ap.add_argument("--full", action="store_true", help="full captures instead of --quick ones")
     ap.add_argument("--cores", type=int, default=2)
+    ap.add_argument("--tag", default="", help="suffix of the result files, e.g. _20-39")
     a = ap.parse_args(argv)
     seeds = parse_seeds(a.seeds)
     caps = render(seeds, quick=not a.full, preset=a.preset)
@@ -340,8 +341,8 @@ def main(argv: list[str] | None = None) -> int:
     text = "\n".join(lines)
     print(text)
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "rigs.txt").write_text(text + "\n")
-    (RESULTS / "rigs.json").write_text(json.dumps({"wall_s": wall, "rows": rows}, indent=1,
+    (RESULTS / f"rigs{a.tag}.txt").write_text(text + "\n")
+    (RESULTS / f"rigs{a.tag}.json").write_text(json.dumps({"wall_s": wall, "rows": rows}, indent=1,
                                                   default=str) + "\n")
     return 0
 
