@@ -272,6 +272,22 @@ def test_sphere_noisy_statistics():
     assert abs(ab["A_minus_B"]["diameter_mm"]) < 0.002
 
 
+def test_sphere_among_a_wide_table():
+    """A ball whose points are 6 % of the scan's (a table seen all around it, as a steep
+    stripe's long sweep over the table gives): four points drawn from all of them are on the
+    ball once in 4e4 draws, so the ball is found from the neighbourhoods of single points."""
+    rng = np.random.default_rng(21)
+    pts, _, c = sphere_scene(n=3000, stem=False, noise=0.002, seed=21)
+    ball = pts[np.abs(np.linalg.norm(pts - c, axis=1) - 12.5) < 0.05]
+    table = np.column_stack([rng.uniform(-150, 150, (45000, 2)), rng.normal(0.0, 0.002, 45000)])
+    table = table[np.linalg.norm(table[:, :2] - c[:2], axis=1) > 15]
+    P = np.vstack([table, ball])
+    assert len(ball) < 0.07 * len(P)
+    s = mt.measure_sphere(P, 25.0)
+    assert np.linalg.norm(s.centre - c) < 0.001 and abs(s.figures()["size_error_mm"]) < 0.002
+    assert s.figures()["n"] >= 0.99 * len(ball)
+
+
 def test_sphere_wrong_nominal_fails_clearly():
     pts, _, _ = sphere_scene(stem=False)
     with pytest.raises(ValueError, match="no sphere of radius"):

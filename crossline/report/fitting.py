@@ -166,10 +166,16 @@ def ransac_sphere(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Sphere of about the nominal ``radius`` among points (N, 3) (stem, plate and all).
 
-    Spheres through random point quadruples whose radius is within ``radius_tolerance``
-    (relative) of the nominal one are scored by their points within ``threshold``.
-    Returns the best candidate's centre and its inlier mask (N,).
+    Spheres through point quadruples whose radius is within ``radius_tolerance`` (relative)
+    of the nominal one are scored by their points within ``threshold``. Half the quadruples
+    are drawn from all the points, half from the ball-sized neighbourhood of a random point:
+    where the ball holds a tenth of the points or less (a table seen around it), four points
+    drawn from all of them are on the ball once in ten thousand draws, four neighbours of a
+    point on the ball most of the time. Returns the best candidate's centre and its inlier
+    mask (N,).
     """
+    from scipy.spatial import cKDTree
+
     p = np.asarray(points, dtype=np.float64)
     if len(p) < 4:
         raise ValueError(f"ransac_sphere needs at least 4 points, got {len(p)}")
@@ -177,7 +183,14 @@ def ransac_sphere(
     sub = p[_subsample(len(p), sample, rng)]
     c0 = sub.mean(0)
     q = sub - c0
-    quad = q[rng.integers(0, len(q), size=(iterations, 4))]
+    n_far = iterations - iterations // 2
+    quad = q[rng.integers(0, len(q), size=(n_far, 4))]
+    seeds = rng.integers(0, len(q), size=iterations // 2)
+    near = cKDTree(q).query_ball_point(q[seeds], r=radius, return_sorted=False)
+    local = [np.r_[s, np.asarray(nb)[rng.integers(0, len(nb), 3)]] for s, nb in zip(seeds, near, strict=True)
+             if len(nb) >= 4]
+    if local:
+        quad = np.concatenate([quad, q[np.asarray(local)]])
     c, r, ok = _spheres_from_4(quad)
     ok &= np.abs(r - radius) < radius_tolerance * radius
     if not ok.any():
