@@ -18,12 +18,13 @@ from crossline.scan.labels import Disambiguator
 W, H, F = 900, 700, 1200.0
 
 
-def _rig(rng: np.random.Generator) -> tuple[Camera, LaserPlanes, np.ndarray]:
-    """A camera and two laser planes through a point at about 200 mm, crossing in the image."""
+def _rig(rng: np.random.Generator, theta: float | None = None) -> tuple[Camera, LaserPlanes, np.ndarray]:
+    """A camera and two laser planes through a point at about 200 mm, crossing in the image
+    (laser A's stripe at ``theta`` rad to the image's u axis, if given)."""
     cam = Camera(np.array([[F, 0, W / 2 - 0.5], [0, F, H / 2 - 0.5], [0, 0, 1.0]]), np.zeros(5), (W, H))
     X = np.array([rng.uniform(-10, 10), rng.uniform(-10, 10), 200.0])
     planes = []
-    theta = rng.uniform(0, np.pi)
+    theta = rng.uniform(0, np.pi) if theta is None else theta
     for k, turn in enumerate((0.0, np.radians(rng.uniform(50, 130)))):
         t = np.array([np.cos(theta + turn), np.sin(theta + turn), 0.0])  # stripe direction, fronto
         emitter = np.array([0.0, 0.0, 0.0]) + rng.uniform(60, 120) * np.cross(t, [0, 0, 1]) * (-1) ** k
@@ -184,3 +185,59 @@ def test_one_stripe_followed_before_the_other_is_seen():
     c = dis.counts["labelled_by_order"]
     assert wrong == 0
     assert c["by_previous_frames"] > 3 * c["by_order"], c
+
+
+def _stripes_by_axis(cam: Camera, planes: LaserPlanes, n_s: np.ndarray, p_s: np.ndarray):
+    """Like :func:`_stripes`, but a stripe steeper than 45 deg is sampled per image row, as the
+    extractor profiles it (axis 1); returns u, v, axis, truth."""
+    out = []
+    d_s = -float(n_s @ p_s)
+    for code, k in ((1, "A"), (2, "B")):
+        p, d = plane_line_intersection(planes[k].normal, planes[k].d, n_s, d_s)
+        pts = p + np.linspace(-400, 400, 20001)[:, None] * d
+        uv = cam.project(pts[pts[:, 2] > 10])
+        uv = uv[(uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)]
+        if len(uv) < 2:
+            continue
+        ax = int(np.ptp(uv[:, 1]) > np.ptp(uv[:, 0]))  # steep: along the rows
+        o = np.argsort(uv[:, ax])
+        grid = np.arange(np.ceil(uv[:, ax].min()), np.floor(uv[:, ax].max()) + 1)
+        other = np.interp(grid, uv[o, ax], uv[o, 1 - ax])
+        u, v = (grid, other) if ax == 0 else (other, grid)
+        out.append((u, v, np.full(grid.size, ax, np.uint8), np.full(grid.size, code)))
+    u, v, axis, lab = (np.concatenate(x) for x in zip(*out, strict=True))
+    # the crossing, where the extractor finds one merged run: left out
+    near = np.zeros(u.size, bool)
+    a, b = lab == 1, lab == 2
+    if a.any() and b.any():
+        dist = np.hypot(u[a, None] - u[None, b], v[a, None] - v[None, b])
+        near[np.flatnonzero(a)] = dist.min(1) < 6.0
+        near[np.flatnonzero(b)] = dist.min(0) < 6.0
+    return u[~near], v[~near], axis[~near], lab[~near]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_near_vertical_stripe_labelled_by_the_order(seed):
+    """Every frame AB, laser A's stripe within 4 deg of the image's columns: its centres are
+    profiled along the rows; followed down the rows (trace space), its pieces are lines and
+    the cross's order labels them. Linked by image column instead, a near-vertical stripe
+    falls apart into pieces of a column or two, which no line fits."""
+    from crossline.scan.centreline import trace_space
+
+    rng = np.random.default_rng(200 + seed)
+    cam, planes, X = _rig(rng, theta=np.radians(90.0 + rng.uniform(-4, 4)))
+    co = CrossOrder.from_calibration(cam, planes)
+    n_s = _tilted(rng, X, 15.0)
+    u, v, axis, truth = _stripes_by_axis(cam, planes, n_s, X)
+    assert (axis[truth == 1] == 1).all() and (truth == 1).sum() > 300
+    keep = np.ones(u.size, bool)
+    lab, _ = co.labels(u, v, keep, link=trace_space(u, v, axis))
+    assert not np.any((lab > 0) & (lab != truth))
+    assert (lab == truth)[truth == 1].mean() > 0.9 and (lab == truth)[truth == 2].mean() > 0.9
+    old, _ = co.labels(u, v, keep)  # linked by image column
+    assert (old == truth)[truth == 1].mean() < 0.5
+    dis = Disambiguator(order=co, max_frame_gap=2)
+    tu, tv = trace_space(u, v, axis)
+    label, _ = dis.process(0, "AB", tu, tv, np.zeros(u.size, np.uint8), image=(u, v))
+    code = np.where(label == "A", 1, np.where(label == "B", 2, 0))
+    assert not np.any((code > 0) & (code != truth)) and (code == truth).mean() > 0.9

@@ -124,6 +124,7 @@ class CrossOrder:
         same_deg: float = 8.0,
         agreement: float = 0.8,
         direction_margin: float = 0.25,
+        link: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Label the ``usable`` centres of one AB frame: 1 = A, 2 = B, 0 = not decided; and pieces.
 
@@ -142,7 +143,10 @@ class CrossOrder:
         hidden, or out of the window), a piece takes the laser whose stripe on such a surface
         runs nearer its direction, if nearer by ``direction_margin`` of the angle between the
         two or more; where some pieces meet, the others stay undecided (a short piece on a ball
-        can run either way). Centres within ``near_px`` of ``l`` stay undecided.
+        can run either way). Centres within ``near_px`` of ``l`` stay undecided. ``link``: the
+        coordinates the centres are linked into traces by, where not ``(u, v)`` (the trace
+        space of :func:`crossline.scan.centreline.trace_space`, which follows a steep stripe
+        down the rows).
         """
         out = np.zeros(u.size, np.int8)
         piece_of = np.full(u.size, -1, np.int64)
@@ -151,8 +155,9 @@ class CrossOrder:
             return out, piece_of
         uu, vv = u[idx], v[idx]
         s, h = self.coordinates(uu, vv)
-        prev = link_traces(np.zeros(idx.size, np.int64), np.zeros(idx.size, "<U1"), uu, vv)
-        trace, _, _ = trace_position(prev, uu)
+        lu, lv = (uu, vv) if link is None else (link[0][idx], link[1][idx])
+        prev = link_traces(np.zeros(idx.size, np.int64), np.zeros(idx.size, "<U1"), lu, lv)
+        trace, _, _ = trace_position(prev, lu)
         _, piece = np.unique(2 * trace.astype(np.int64) + (h > 0), return_inverse=True)
         piece = piece.reshape(-1)
         n_pieces = int(piece.max()) + 1

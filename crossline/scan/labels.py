@@ -380,7 +380,7 @@ class Disambiguator:
         co = c["labelled_by_order"]
         co["frames"] += 1
         n = u.size
-        by_order, piece = self.order.labels(*image, ~merged)
+        by_order, piece = self.order.labels(*image, ~merged, link=(u, v))
         ref = {laser: self._ordered_reference(laser, frame) for laser in ("A", "B")}
         if any(r is not None for r in ref.values()):  # one laser's stripe may not be seen yet
             none = (np.empty(0), np.empty(0))
