@@ -519,3 +519,25 @@ def test_refined_points_overwrite_only_what_is_handed_over(plate):
     c = fuse_cloud(p, plate.laser, plate.frame, plate.df[["x_cam", "y_cam", "z_cam"]].to_numpy(),
                    neighbours=0, refine_prior=PRIOR)
     assert np.array_equal(p, before) and c.stats["refine"]["crossings"] > 0
+
+
+def test_crossing_where_a_stripe_is_sparse(monkeypatch):
+    """A stripe sampled densely elsewhere (a steep stripe's rows on the table) and sparsely at
+    its crossing (on the ball): its laser's median spacing gives a window holding 7 points
+    there, too few for the curve; the window is fitted again from the spacing about the seed.
+    Without that (``MAX_GROWTH`` 1: no growth), no crossing is found."""
+    import crossline.scan.refine_crossings as RC
+
+    ax = np.arange(-5.0, 5.0001, 0.05)
+    a = np.column_stack([ax, np.zeros_like(ax), np.zeros_like(ax)])
+    by = np.r_[np.arange(-3.0, 3.0001, 0.2), np.arange(5.0, 40.0, 0.03)]
+    b = np.column_stack([np.zeros_like(by), by, np.zeros_like(by)])
+    p = np.vstack([a, b])
+    frame = np.r_[np.zeros(len(a), np.int64), np.ones(len(b), np.int64)]
+    laser = np.r_[np.ones(len(a), np.int8), np.full(len(b), 2, np.int8)]
+    views = np.array([[0.0, 0.0, 100.0], [0.0, 0.0, 100.0]])
+    cr = R.find_crossings(frame, laser, p, views)
+    assert len(cr.gap) == 1
+    assert np.linalg.norm(cr.x[0]) < 1e-9 and abs(cr.gap[0]) < 1e-12
+    monkeypatch.setattr(RC, "MAX_GROWTH", 1.0)
+    assert len(R.find_crossings(frame, laser, p, views).gap) == 0

@@ -27,6 +27,13 @@ MAX_WIDTH_RATIO = 2.0  # centres of column cuts longer than this x their laser's
 # points searched at once; more are searched a slab of space at a time, so that the search's
 # own arrays (~60 B a point: stripe order, k-d tree) stay a few hundred MB on a long scan
 SLAB_POINTS = 4_000_000
+# a seed whose stripe is this much sparser about it than its laser's median spacing has its
+# window refitted from its own spacing (see _search)
+SPARSE_FACTOR = 1.5
+# ... up to this many times its laser's window: over a longer stretch a curved stripe is no
+# quadratic, and the exact ball of tests/test_refine.py holds its crossings on its surface
+# up to this growth, not at twice its window
+MAX_GROWTH = 1.5
 
 
 @dataclass(frozen=True)
@@ -170,7 +177,8 @@ def _curves(p: np.ndarray, seeds: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     """Quadratic space curves x(s) = c0 + c1 s + c2 s^2 fitted along a stripe around each seed.
 
     ``p`` are the ordered points, ``seeds`` positions in it, ``lo``/``hi`` the stripe's
-    bounds; the window is the stripe's points within ``half_mm`` (3-D) of the seed among the
+    bounds; the window is the stripe's points within ``half_mm`` (3-D; one, or one per seed)
+    of the seed among the
     ``width`` neighbours either side in stripe order; ``s`` is the distance along the
     window's principal direction. Returns c (K, 3, 3) with rows c0, c1, c2, the inverse
     normal matrix (K, 3, 3) (the prediction variance of the fit) and whether it is usable
@@ -181,6 +189,7 @@ def _curves(p: np.ndarray, seeds: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     inside = (idx >= lo[:, None]) & (idx < hi[:, None])
     idx = np.clip(idx, lo[:, None], hi[:, None] - 1)
     d = p[idx] - p[seeds][:, None, :]  # (K, W, 3), relative to the seed for conditioning
+    half_mm = np.broadcast_to(np.asarray(half_mm, dtype=np.float64), seeds.shape)[:, None]
     m = inside & (np.sum(d * d, axis=2) <= half_mm * half_mm)
     w = m.astype(np.float64)
     n = w.sum(1)
@@ -192,7 +201,8 @@ def _curves(p: np.ndarray, seeds: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     A = np.matmul(np.swapaxes(M, 1, 2), M)
     s_in = np.where(m, s, np.nan)
     with np.errstate(all="ignore"):
-        ok = (n >= 8) & (np.nanmin(s_in, 1) < -0.4 * half_mm) & (np.nanmax(s_in, 1) > 0.4 * half_mm)
+        ok = ((n >= 8) & (np.nanmin(s_in, 1) < -0.4 * half_mm[:, 0])
+              & (np.nanmax(s_in, 1) > 0.4 * half_mm[:, 0]))
     A[~ok] = np.eye(3)
     Ainv = np.linalg.inv(A)
     c = np.matmul(Ainv, np.matmul(np.swapaxes(M, 1, 2), d))
@@ -252,6 +262,21 @@ class _Ordered:
                 d += np.diff(q[:, i]) ** 2
             out[a:a + len(d)] = np.sqrt(d)
         return out
+
+
+def _local_spacing(po: _Ordered, seeds: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                   k: int = 4) -> np.ndarray:
+    """Median distance (K,) between neighbours in stripe order among the ``k`` either side of
+    each seed, within its stripe's bounds ``lo``/``hi``."""
+    off = np.arange(-k, k)
+    i = seeds[:, None] + off[None, :]
+    ok = (i >= lo[:, None]) & (i + 1 < hi[:, None])
+    i = np.clip(i, lo[:, None], np.maximum(hi[:, None] - 2, lo[:, None]))
+    d = np.where(ok, np.linalg.norm(po[i + 1] - po[i], axis=2), np.nan)
+    out = np.full(len(seeds), np.nan)  # a stripe of one point has no spacing
+    some = ok.any(1)
+    out[some] = np.nanmedian(d[some], axis=1)
+    return out
 
 
 def _spacings(po: _Ordered, sid: np.ndarray, lo_: np.ndarray) -> tuple[float, dict[int, float]]:
@@ -477,10 +502,29 @@ def _search(
     # sparser stretches and for a second segment of the stripe interleaved in the order
     width = {code: int(np.clip(np.ceil(1.6 * half[code] / max(min(spacing, sp[code]), 1e-3)), 8, 200))
              for code in (1, 2)}
-    ca, Ainv_a, ok_a = _curves(po, ia, start[sid[ia]], end[sid[ia]], half[1], width[1])
-    cb, Ainv_b, ok_b = _curves(po, ib, start[sid[ib]], end[sid[ib]], half[2], width[2])
+    fits = {}
+    for code, seeds in ((1, ia), (2, ib)):
+        lo, hi = start[sid[seeds]], end[sid[seeds]]
+        c, Ainv, ok = _curves(po, seeds, lo, hi, half[code], width[code])
+        h = np.full(len(seeds), half[code])
+        # a stripe sampled more sparsely about its seed than its laser's median spacing says
+        # (a steep stripe: dense rows on the table, sparse on the ball) holds too few points
+        # there: fitted again over MIN_SPACINGS of its own spacing about the seed
+        redo = np.flatnonzero(~ok)
+        if redo.size:
+            local = _local_spacing(po, seeds[redo], lo[redo], hi[redo])
+            h_re = np.clip(MIN_SPACINGS * local, half[code], MAX_GROWTH * half[code])
+            grow = np.flatnonzero((h_re > half[code]) & (local > SPARSE_FACTOR * sp[code]))
+            if grow.size:
+                r = redo[grow]
+                w_re = int(np.clip(np.ceil(1.6 * np.max(h_re[grow] / local[grow])), 8, 200))
+                c2, A2, ok2 = _curves(po, seeds[r], lo[r], hi[r], h_re[grow], w_re)
+                c[r], Ainv[r], ok[r], h[r] = c2, A2, ok2, h_re[grow]
+        fits[code] = (c, Ainv, ok, h)
+    (ca, Ainv_a, ok_a, ha), (cb, Ainv_b, ok_b, hb) = fits[1], fits[2]
     ok = ok_a & ok_b
     ia, ib, ca, cb, Ainv_a, Ainv_b = ia[ok], ib[ok], ca[ok], cb[ok], Ainv_a[ok], Ainv_b[ok]
+    ha, hb = ha[ok], hb[ok]
     s, r, xa, xb, ta, tb = _closest(ca, cb)
     nrm = np.cross(ta, tb)
     sin = np.linalg.norm(nrm, axis=1) / np.maximum(
@@ -495,7 +539,7 @@ def _search(
                       np.stack([np.ones_like(s), s, s * s], 1))
     lev_b = np.einsum("ka,kab,kb->k", np.stack([np.ones_like(r), r, r * r], 1), Ainv_b,
                       np.stack([np.ones_like(r), r, r * r], 1))
-    keep = ((np.abs(s) <= 0.5 * half[1]) & (np.abs(r) <= 0.5 * half[2])
+    keep = ((np.abs(s) <= 0.5 * ha) & (np.abs(r) <= 0.5 * hb)
             & (sin >= np.sin(np.radians(min_angle_deg))) & (np.abs(gap) <= radius_mm))
     # the same crossing found from two cells: keep the one whose seeds were closest to it
     k = np.flatnonzero(keep)
