@@ -599,10 +599,40 @@ def test_label_errors_against_true_lines():
     r = label_errors(np.zeros(200, int), lab, np.r_[u, u] + 0.2, np.r_[ta, tb] + 0.3,
                      np.zeros(200, int), np.array(["A"] * 100 + ["B"] * 100), np.r_[u, u],
                      np.r_[ta, tb])
-    # in columns 47..52 both lines are within 3 px of the point: 2 x 6 points left unchecked
-    assert r["checked"] == 200 - 12
+    # distances across the lines (slopes +-0.5: the row difference / 1.118): an A point at
+    # (u + 0.2, ta(u) + 0.3) is |u - 49.6| / 1.118 from line B, within 3 px for u = 47..52; a
+    # B point is |u - 50.2| / 1.118 from line A, within 3 px for u = 47..53: 13 left unchecked
+    assert r["checked"] == 200 - 13
     assert r["wrong"] == 3 and r["wrong_in_crossing_band"] == 2 and r["wrong_away_from_crossing"] == 1
-    assert r["wrong_rate"] == pytest.approx(3 / 188)
+    assert r["wrong_rate"] == pytest.approx(3 / 187)
+    # their centre error, across line A: (0.3 - 0.5 * 0.2) / 1.118 px, every point
+    assert r["centre_error"]["A"]["mean_px"] == pytest.approx(0.2 / np.hypot(1, 0.5))
+
+
+def test_label_errors_measure_a_steep_line_across_it():
+    """A stripe 86 deg from the rows (14.3 rows per column), its centres at fractional columns
+    with a known scatter across the line: the centre error is that scatter, not the scatter
+    times the slope that the nearest column's row would give."""
+    from crossline.report.metrics import label_errors
+
+    rng = np.random.default_rng(3)
+    slope = np.tan(np.radians(86.0))
+    tu = np.arange(100, 160)
+    tv = 400 + slope * (tu - 100)
+    # the centres, one per row, moved across the line by N(0, 0.05 px)
+    vv = np.arange(410.0, 1200.0)
+    uu = 100 + (vv - 400) / slope
+    e = rng.normal(0.0, 0.05, vv.size)
+    n = np.array([-slope, 1.0]) / np.hypot(1.0, slope)  # unit normal (u, v) of the line
+    uu, vv = uu + e * n[0], vv + e * n[1]
+    far_b = np.full(tu.size, 5000.0)  # laser B out of reach
+    r = label_errors(np.zeros(vv.size, int), np.array(["A"] * vv.size), uu, vv,
+                     np.zeros(2 * tu.size, int), np.array(["A"] * tu.size + ["B"] * tu.size),
+                     np.r_[tu, tu], np.r_[tv, far_b])
+    assert r["checked"] == vv.size and r["wrong"] == 0
+    c = r["centre_error"]["A"]
+    assert c["sigma_px"] == pytest.approx(0.05, rel=0.1)
+    assert abs(c["mean_px"]) < 0.01
 
 
 def test_label_errors_use_the_nearest_row_of_a_line_that_crosses_a_column_twice():

@@ -73,13 +73,15 @@ def test_quick_report_every_section_and_same_bytes(quick_pipeline):
         lt = s["truth_labels"]
         assert lt["checked"] >= 0.9 * lt["points"] > 0 and lt["wrong"] == 0, (name, lt)
         # the centres against the speckle limit of the rig's optics (0.15 contrast, 405 nm,
-        # f/8, 2.4 um pixels): smoothed centres can beat one profile's bound but not the
-        # smoothed bound of independent columns; and they are not far from it
+        # f/8, 2.4 um pixels): not far above one profile's bound, and not below the sensor's
+        # own bound after the smoothing (the renderer's noise is exactly that sensor model)
         for laser, sl in lt["speckle_limit"].items():
             assert sl["bound_px"] == pytest.approx(
                 centre_bound_px(0.15, 405.0, 8.0, 2.4, sl["magnification"]))
             assert 0.05 < sl["magnification"] < 0.12
-            assert sl["bound_smoothed_px"] < sl["achieved_sigma_px"] < 3 * sl["bound_px"], (name, laser, sl)
+            gain = sl["bound_smoothed_px"] / sl["bound_px"]
+            assert sl["sensor_bound_px"] * gain < sl["achieved_sigma_px"] < 3 * sl["bound_px"], \
+                (name, laser, sl)
             ce = lt["centre_error"][laser]
             assert abs(ce["mean_px"]) < 0.02 and ce["n"] > 100, (name, laser, ce)
     # the freeform against its drawing (part.stl): the quick scan sees a patch of the part's
@@ -114,6 +116,25 @@ def test_quick_report_every_section_and_same_bytes(quick_pipeline):
     g = m["scans"]["gauge"]
     row = next(r for r in m["summary"] if r["id"] == "gauge_mean_error_mm")
     assert 0 < row["U"] < 0.003 and abs(g["truth"]["mean_error_mm"]) <= row["U"]
+
+
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
+    "issue 22.1: the renderer's speckle (a multiplicative field of contrast C per pixel) pulls "
+    "one profile's centre 0.73x Dorsch's bound across the line (bench_scan's error budget, "
+    "speckle only: 0.051 px against 0.070 px), so smoothed centres can beat the bound of "
+    "independent columns; real speckle cannot"))
+def test_quick_report_centres_do_not_beat_the_smoothed_speckle_bound(quick_pipeline):
+    """Measured across the true line, the smoothed centres stay above the speckle bound after
+    smoothing over independent columns (the lower end the report gives), every scan and laser."""
+    cap, interim, processed, root = quick_pipeline
+    out = root / "speckle.json"
+    cfg = json.dumps({"report": {"metrics": {"uncertainty_draws": 0}}})
+    assert main(["report", str(cap), "--interim", str(interim), "--processed", str(processed),
+                 "--config-json", cfg, "--pdf", str(root / "speckle.pdf"), "--metrics", str(out)]) == 0
+    m = json.loads(out.read_text())
+    for name, s in m["scans"].items():
+        for laser, sl in s["truth_labels"]["speckle_limit"].items():
+            assert sl["bound_smoothed_px"] < sl["achieved_sigma_px"], (name, laser, sl)
 
 
 def test_pages_of_unusual_scans(quick_pipeline):

@@ -100,3 +100,21 @@ def test_sensor_bound_closed_forms():
     assert math.isnan(sensor_bound_px(100.0, -1.0))
     # speckle and sensor: variances add
     assert combined_bound_px(0.03, 0.04) == pytest.approx(0.05)
+
+
+def test_line_cosines_of_flat_steep_and_stepped_lines():
+    """The cosines the validation turns the truth's column sigma and a profile's bound with:
+    a 30 deg line (column profile), an 86 deg one (row profile), and a column where the line
+    steps to another surface (the gentler side is the line's)."""
+    from crossline.report.scan_truth import _line_cosines
+
+    u = np.arange(40)
+    for deg in (30.0, 86.0):
+        t = np.tan(np.radians(deg))
+        cc, cp = _line_cosines(np.zeros(40, np.int64), u, 100 + t * u)
+        assert cc == pytest.approx(np.full(40, np.cos(np.radians(deg))))
+        assert cp == pytest.approx(np.full(40, max(np.cos(np.radians(deg)), np.sin(np.radians(deg)))))
+    # a flat line that jumps 200 rows at column 20 (a step), and a second line 300 rows below
+    v = np.where(u < 20, 100.0, 300.0)
+    cc, cp = _line_cosines(np.zeros(80, np.int64), np.r_[u, u], np.r_[v, v + 300.0])
+    assert cc == pytest.approx(np.ones(80)) and cp == pytest.approx(np.ones(80))

@@ -67,14 +67,15 @@ SENSOR_ROWS = 20000  # true centre points per laser the sensor bound is evaluate
 
 def _sensor_profiles(centrelines: Path | None, sensor: dict,
                      found: dict[str, np.ndarray]) -> dict[str, dict] | None:
-    """Per laser: the true column profiles of the visible centre points as they reach the
-    pixels (peak and sigma after the PSF, background) from truth/<scan>_centrelines.parquet,
-    at the (frame, column) keys where the pipeline found a point of that laser (``found``:
+    """Per laser: the true profiles of the visible centre points as they reach the pixels (peak
+    and sigma after the PSF, background) from truth/<scan>_centrelines.parquet, along the
+    profile the extractor takes there (column or row) and its cosine to the line's normal, at
+    the (frame, column) keys where the pipeline found a point of that laser (``found``:
     frame * 2^20 + column), and the sensor's read noise with the ADC's rounding (gain^2 / 12)
     and PRNU."""
     import pandas as pd
 
-    need = ["frame", "laser", "u", "visible", "peak_e", "sigma_px", "background_e"]
+    need = ["frame", "laser", "u", "v", "visible", "peak_e", "sigma_px", "background_e"]
     if centrelines is None or not centrelines.is_file() or sensor.get("read_noise_e") is None:
         return None
     try:
@@ -87,21 +88,56 @@ def _sensor_profiles(centrelines: Path | None, sensor: dict,
     prnu = float(sensor.get("prnu") or 0.0)
     out = {}
     for name, g in t[t["visible"]].groupby("laser"):
+        g = g.sort_values(["frame", "u"], kind="stable")
         a, s, b = (g[c].to_numpy(np.float64) for c in ("peak_e", "sigma_px", "background_e"))
+        cos_c, cos_p = _line_cosines(g["frame"].to_numpy(np.int64), g["u"].to_numpy(np.int64),
+                                     g["v"].to_numpy(np.float64))
         key = g["frame"].to_numpy(np.int64) * (1 << 20) + g["u"].to_numpy(np.int64)
         ok = np.isfinite(a) & np.isfinite(s) & np.isfinite(b) & (a > 0) & (s > 0)
         ok &= np.isin(key, found.get(str(name), np.zeros(0, np.int64)))
-        a, s, b = a[ok], s[ok], b[ok]
+        a, s, b, cos_c, cos_p = a[ok], s[ok], b[ok], cos_c[ok], cos_p[ok]
         if a.size > SENSOR_ROWS:  # a fixed sample: the same report from the same capture
             k = np.random.default_rng(0).choice(a.size, SENSOR_ROWS, replace=False)
-            a, s, b = a[k], s[k], b[k]
+            a, s, b, cos_c, cos_p = a[k], s[k], b[k], cos_c[k], cos_p[k]
         if a.size < 10:
             continue
-        st = np.hypot(s, psf)
-        # the PSF spreads the column profile, keeping its electrons: the peak falls by s / st
-        out[str(name)] = {"peak_e": a * s / st, "sigma_px": st, "background_e": b,
-                          "read_noise_e": read, "prnu": prnu}
+        # the truth's sigma runs along the column: across the line it is s cos_c; the PSF
+        # widens that, keeping the electrons (the peak falls by the same ratio); the profile
+        # the extractor takes crosses the line at cosine cos_p, so it is 1 / cos_p as wide
+        sn = s * cos_c
+        st = np.hypot(sn, psf)
+        out[str(name)] = {"peak_e": a * sn / st, "sigma_px": st / cos_p, "background_e": b,
+                          "read_noise_e": read, "prnu": prnu, "cosine": cos_p}
     return out
+
+
+def _line_cosines(frame: np.ndarray, u: np.ndarray,
+                  v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per true centre point, from the line's slope to the nearest rows of its neighbouring
+    columns: the cosine between the column and the line's normal, and between the profile the
+    extractor takes there (the column for a line flatter than 45 deg, the row for a steeper
+    one) and the normal."""
+    from crossline.scan.labels import nearest_in_column
+
+    span = int(u.max(initial=0)) + 3
+    key = (frame * span + u).astype(np.float64)
+    order = np.lexsort((v, key))
+    ks, vs = key[order], v[order]
+    side = []
+    for du in (1.0, -1.0):
+        j, _ = nearest_in_column(ks, vs, key + du, v)
+        side.append(np.where(j >= 0, du * (vs[np.maximum(j, 0)] - v), np.nan))
+    ahead, behind = side
+    # a column whose nearest row lies on another surface (a step, an occlusion) reads a jump:
+    # where the two sides disagree by more than 2x, the gentler one is the line's
+    agree = np.abs(ahead - behind) <= 0.5 * np.fmax(np.abs(ahead), np.abs(behind))
+    gentler = np.where(np.abs(ahead) <= np.abs(behind), ahead, behind)
+    slope = np.where(agree, 0.5 * (ahead + behind),
+                     np.where(np.isfinite(ahead) & np.isfinite(behind), gentler,
+                              np.fmax(ahead, behind)))
+    slope = np.nan_to_num(slope, nan=0.0)
+    h = np.hypot(1.0, slope)
+    return 1.0 / h, np.where(np.abs(slope) > 1.0, np.abs(slope) / h, 1.0 / h)
 
 
 def _speckle_limit(centre: dict, truth: dict, points: Path, smooth_px: int | None = None,
@@ -158,8 +194,11 @@ def _speckle_limit(centre: dict, truth: dict, points: Path, smooth_px: int | Non
                "pixel_um": float(pitch), "magnification": m}
         pr = profiles.get(name)
         if pr is not None:
-            each = sp.sensor_bound_px(pr["peak_e"], pr["sigma_px"], pr["background_e"],
-                                   pr["read_noise_e"], pr["prnu"])
+            # one profile's bound, along it; across the line (as the achieved sigma) it is
+            # the profile's cosine to the line's normal times that
+            each = pr["cosine"] * sp.sensor_bound_px(pr["peak_e"], pr["sigma_px"],
+                                                     pr["background_e"], pr["read_noise_e"],
+                                                     pr["prnu"])
             sb = _mixture_sigma(each)
             cb = _mixture_sigma(sp.combined_bound_px(b, each))
             row.update({

@@ -31,6 +31,33 @@ __all__ = [
 # ----------------------------------------------------------------------------- against truth
 
 
+def _true_line_at(key_u: np.ndarray, key_v: np.ndarray, span: int, frame: np.ndarray,
+                  u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The true line's row at each point's (fractional) column and its slope (rows per column).
+
+    ``key_u`` (frame * span + column) and ``key_v`` are one laser's true points sorted by
+    (key, row). The row is interpolated between the line's rows at the columns either side of
+    the point (each the row nearest the point, for a line that crosses a column twice); where
+    only one of them exists its row is taken, with the slope of the next pair if there is one.
+    """
+    c0 = np.floor(u).astype(np.int64)
+    rows = []
+    for dc in (-1, 0, 1, 2):
+        q = (frame * span + c0 + dc).astype(np.float64)
+        j, _ = nearest_in_column(key_u, key_v, q, v)
+        rows.append(np.where(j >= 0, key_v[np.maximum(j, 0)], np.nan))
+    rm, r0, r1, r2 = rows
+    t = u - c0
+    slope = r1 - r0
+    slope = np.where(np.isfinite(slope), slope, np.where(np.isfinite(r0), r0 - rm, r2 - r1))
+    row = np.where(np.isfinite(r0) & np.isfinite(r1), r0 + t * (r1 - r0),
+                   np.where(np.isfinite(r0) & (t <= 0.5), r0 + t * slope,
+                            np.where(np.isfinite(r1), r1 - (1.0 - t) * slope, np.nan)))
+    # a point half a column or more from the one column its line has: its nearest true row
+    row = np.where(np.isnan(row) & np.isfinite(r0), r0, row)
+    return row, np.nan_to_num(slope, nan=0.0)
+
+
 def label_errors(
     frame: np.ndarray, laser: np.ndarray, u: np.ndarray, v: np.ndarray,
     true_frame: np.ndarray, true_laser: np.ndarray, true_u: np.ndarray, true_v: np.ndarray,
@@ -38,49 +65,50 @@ def label_errors(
 ) -> dict[str, Any]:
     """Wrong A/B labels of stripe points (px) against the true centre lines of their frames.
 
-    A point is checked where one true line of its frame passes within ``near_px`` of it in its
-    column (``round(u)``) and the other does not; its true laser is that line's (a line that
-    crosses the column more than once counts with its row nearest the point). Points where
-    the two true lines are within ``crossing_px`` of each other are the crossing band, counted
-    apart. ``centre_error``: per laser, the right-labelled centres' offset from their true
-    line along the column (px; n, mean, RMS and robust sigma), away from the crossing band.
+    Distances are measured across a true line, in the image: the point's row against the
+    line's row at the point's column (interpolated between the line's columns), times the
+    line's cosine to the rows. A steep stripe's centres sit at fractional columns, and its row
+    changes by many pixels per column: along the column the same centre error reads that many
+    times larger. A point is checked where one true line of its frame passes within
+    ``near_px`` of it and the other does not; its true laser is that line's. Points within
+    ``crossing_px`` of both lines are the crossing band, counted apart. ``centre_error``: per
+    laser, the right-labelled centres' signed distance from their true line (px; n, mean, RMS
+    and robust sigma), away from the crossing band: across the stripe, where the speckle bound
+    (:mod:`crossline.report.speckle`) applies.
     """
     frame = np.asarray(frame, dtype=np.int64)
-    col = np.rint(np.asarray(u, dtype=np.float64)).astype(np.int64)
+    u = np.asarray(u, dtype=np.float64)
     v = np.asarray(v, dtype=np.float64)
     laser = np.asarray(laser).astype(str)
     tf = np.asarray(true_frame, dtype=np.int64)
     tu = np.asarray(true_u, dtype=np.int64)
     tv = np.asarray(true_v, dtype=np.float64)
     tl = np.asarray(true_laser).astype(str)
-    span = int(max(col.max(initial=0), tu.max(initial=0))) + 2
-    query = frame * span + col
-    true_row = {}
+    span = int(max(np.ceil(u.max(initial=0.0)), tu.max(initial=0))) + 4
+    dist = {}
     for name in ("A", "B"):
         m = tl == name
         if not m.any():
-            true_row[name] = np.full(query.size, np.nan)
+            dist[name] = np.full(u.size, np.nan)
             continue
         key = (tf[m] * span + tu[m]).astype(np.float64)
         order = np.lexsort((tv[m], key))
-        # a line can cross a column more than once (a step, an occlusion): the nearest row
-        j, _ = nearest_in_column(key[order], tv[m][order], query.astype(np.float64), v)
-        true_row[name] = np.where(j >= 0, tv[m][order][np.maximum(j, 0)], np.nan)
-    da = np.abs(v - true_row["A"])
-    db = np.abs(v - true_row["B"])
+        row, slope = _true_line_at(key[order], tv[m][order], span, frame, u, v)
+        dist[name] = (v - row) / np.hypot(1.0, slope)
+    da, db = np.abs(dist["A"]), np.abs(dist["B"])
     with np.errstate(invalid="ignore"):
         # where both true lines pass within near_px the point could be either: not checked
         checked = (np.fmin(da, db) <= near_px) & ~(np.maximum(da, db) <= near_px)
         truth = np.where(np.nan_to_num(da, nan=np.inf) <= np.nan_to_num(db, nan=np.inf), "A", "B")
-        crossing = np.abs(true_row["A"] - true_row["B"]) < crossing_px
+        crossing = np.maximum(da, db) < crossing_px
     wrong = checked & (laser != truth)
     n_checked = int(checked.sum())
-    # how far the right-labelled centres lie from their true line, along the column, away
-    # from the crossing (where the two stripes' light overlaps)
+    # how far the right-labelled centres lie from their true line, across it, away from the
+    # crossing (where the two stripes' light overlaps)
     centre = {}
     for name in ("A", "B"):
         m = checked & ~crossing & (laser == truth) & (truth == name)
-        r = (v - true_row[name])[m]
+        r = dist[name][m]
         if r.size >= 10:
             med = float(np.median(r))
             centre[name] = {"n": int(r.size), "mean_px": float(r.mean()),
