@@ -354,13 +354,19 @@ def test_jpeg_stripe_on_a_small_chessboard_against_truth(tmp_path: Path, quality
     planes = LaserPlanes.load(las)
     for name in ("A", "B"):
         p, t = planes[name], truth["lasers"][name]
-        n_t = np.array(t["normal"])
+        n_t, d_t = np.array(t["normal"]), float(t["d"])
         n, d = (p.normal, p.d) if p.normal @ n_t > 0 else (-p.normal, -p.d)
-        # the lossless PNG of this capture, same true camera: A 0.001° / +0.001 mm, B 0.008° /
-        # -0.021 mm (this rig's laser B is weakly fixed); JPEG 90 measured 0.004/+0.010 and
-        # 0.010/-0.023, JPEG 75 0.015/+0.041 and 0.012/+0.033
         assert np.degrees(angle_between(n, n_t)) < (0.02 if quality == 90 else 0.05), name
-        assert abs(d - t["d"]) < (0.03 if quality == 90 else 0.06), name
+        # where the plane is used: the estimated plane's distance from the true one over a
+        # 40 mm square of the true plane about the boards' centre (d itself, at the camera's
+        # centre 200 mm away, is mostly the tilt's lever: 0.03 deg moves it 0.1 mm)
+        c = np.mean([np.array(q["T_cam_board"])[:3, 3] for q in p.extra["poses"]], axis=0)
+        e1 = np.cross(n_t, [0.0, 0.0, 1.0])
+        e1 /= np.linalg.norm(e1)
+        g = np.linspace(-20.0, 20.0, 9)
+        sq = (c - (n_t @ c + d_t) * n_t + g[:, None, None] * e1
+              + g[None, :, None] * np.cross(n_t, e1)).reshape(-1, 3)
+        assert np.abs(sq @ n + d).max() < (0.01 if quality == 90 else 0.03), name
         assert p.extra["rms_px"] < 0.5, (name, p.extra["rms_px"])
         skipped = p.extra["skipped_poses"]
         if quality == 90:

@@ -128,6 +128,15 @@ def test_stripe_width_and_level_are_plausible(paper_model):
     assert stats["band_px"] > 0
 
 
+@pytest.mark.parametrize("grain", [0.3, 0.55, 1.0, 1.5])
+def test_speckle_field_has_the_stated_contrast_per_pixel(grain):
+    """Contrast C per pixel for every grain the rigs draw (0.3-1.5 px), sub-pixel ones too."""
+    rng = np.random.default_rng(5)
+    f = speckle_field(rng, np.ones((400, 400), np.uint8), 0.15, grain)[20:-20, 20:-20]
+    assert abs(f.mean() - 1.0) < 0.005
+    assert abs(f.std() / f.mean() - 0.15) < 0.003
+
+
 def test_speckle_field_has_the_stated_contrast_and_grain():
     rng = np.random.default_rng(5)
     mask = np.ones((400, 400), np.uint8)
