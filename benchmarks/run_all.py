@@ -54,6 +54,8 @@ AREAS: dict[str, tuple[str, str]] = {
     "ball_bar": ("Ball bar: sphere-spacing error SD against truth", "python benchmarks/bench_ball_bar.py"),
     "sheet_curvature": ("Stripe centres of a thick sheet on a ball, corrected, against truth",
                         "python benchmarks/bench_sheet_curvature.py"),
+    "speckle": ("Speckle: the renderer's field against coherent imaging and Dorsch's figure",
+                "python benchmarks/bench_speckle.py"),
     "error_budget": ("Random rigs' ball and gauge errors: calibration against poses",
                      "python benchmarks/bench_error_budget.py --seeds 0-19"),
 }

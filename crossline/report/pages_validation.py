@@ -188,17 +188,20 @@ def page_validation(m: dict[str, Any], plots: dict[str, Any]) -> list[Figure]:
     if rows:
         p.gap(0.1)
         p.text("Stripe centres against the speckle limit", size=10, weight="bold")
-        p.text("Bound: the speckle-limited uncertainty of one centre (Dorsch, Häusler & Herrmann "
-               "1994: contrast × wavelength × f-number × (1 + magnification) / π, per pixel "
-               "pitch), for one profile / after the centre lines' smoothing along the stripe "
-               "with independent columns (speckle grains span a column or two, so the smoothed "
-               "centres' bound lies between the two); achieved: the robust sigma of the checked "
-               "centres' offsets from their true line along the column, away from the crossing "
-               "band. Sensor: the Cramér-Rao bound of one column profile from shot, background "
-               "and read noise (the true stripes' peak, width and background in the simulator's "
-               "truth; the robust sigma over the true points); the combined bound adds the "
-               "speckle's and the sensor's variances (independent to first order). Ratios: "
-               "achieved over the speckle bound and over the combined one (profile / smoothed).",
+        p.text("Speckle: the speckle-limited uncertainty of one centre (Dorsch, Häusler & "
+               "Herrmann 1994: contrast × wavelength × f-number × (1 + magnification) / π, per "
+               "pixel pitch; the centroid's figure for a stripe about as wide as the aperture's "
+               "spot: a fitted profile can beat it on narrow stripes, wide stripes exceed it), "
+               "for one profile / after the centre lines' smoothing along the stripe with "
+               "independent columns (speckle grains span a column or two, so the smoothed "
+               "figure lies between the two); achieved: the robust sigma of the checked "
+               "centres' distances from their true line, across it, away from the crossing "
+               "band. Sensor: the Cramér-Rao bound of one profile as the extractor takes it "
+               "(column or row) from shot, background and read noise, across the line (the "
+               "true stripes' peak, width and background in the simulator's truth; the robust "
+               "sigma over the true points); the combined figure adds the speckle's and the "
+               "sensor's variances (independent to first order). Ratios: achieved over the "
+               "speckle figure and over the combined one (profile / smoothed).",
                size=8)
         p.table(["Scan", "Laser", "speckle (profile / smoothed)", "sensor", "achieved",
                  "/ speckle", "/ combined"], rows,

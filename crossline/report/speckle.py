@@ -8,7 +8,11 @@ image-side aperture angle of the observation (``sin u' = 1 / (2 N (1 + m))`` for
 ``N`` at magnification ``m``), i.e. ``dx' = C lambda N (1 + m) / pi``; in the object that is
 ``dx' / m``, and along the triangulation the point moves by ``dx / sin theta``, which gives
 their ``dz = C lambda / (2 pi sin u_obs sin theta)``. Divided by the pixel pitch, ``dx'`` is
-the bound on a stripe centre in pixels: no extractor can do better on one profile.
+the speckle's figure for a stripe centre in pixels. It is the intensity centroid's scatter for
+a stripe about as wide as the aperture's spot, not a bound on every estimator: drawn as
+coherent imaging (``benchmarks/bench_speckle.py``), the centroid's scatter grows with the
+square root of the stripe's width, and a profile fitted with weights for multiplicative
+noise falls below the figure on narrow stripes.
 
 The sensor adds its own noise: the photon (shot) noise of the stripe and of the background
 and the read noise. Its bound on the centre of one column profile is the Cramér-Rao lower
