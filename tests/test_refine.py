@@ -541,3 +541,16 @@ def test_crossing_where_a_stripe_is_sparse(monkeypatch):
     assert np.linalg.norm(cr.x[0]) < 1e-9 and abs(cr.gap[0]) < 1e-12
     monkeypatch.setattr(RC, "MAX_GROWTH", 1.0)
     assert len(R.find_crossings(frame, laser, p, views).gap) == 0
+
+
+def test_local_spacing_of_a_one_point_stripe_at_the_end_of_the_order():
+    """A seed on a stripe of a single point, the last in stripe order, has no spacing (NaN)
+    and does not read past the points (random rig 8's ball after the speckle fix: an
+    IndexError in fuse); the other seeds' spacings are their stripes' own."""
+    from crossline.scan.refine_crossings import _local_spacing, _Ordered
+
+    # stripe 0: points 0..9, 0.1 mm apart; stripe 1: the single point 10
+    p = np.c_[np.r_[np.arange(10) * 0.1, 5.0], np.zeros(11), np.zeros(11)]
+    po = _Ordered(p, np.arange(11))
+    out = _local_spacing(po, np.array([5, 10]), np.array([0, 10]), np.array([10, 11]))
+    assert out[0] == pytest.approx(0.1) and np.isnan(out[1])

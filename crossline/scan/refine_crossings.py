@@ -272,7 +272,9 @@ def _local_spacing(po: _Ordered, seeds: np.ndarray, lo: np.ndarray, hi: np.ndarr
     i = seeds[:, None] + off[None, :]
     ok = (i >= lo[:, None]) & (i + 1 < hi[:, None])
     i = np.clip(i, lo[:, None], np.maximum(hi[:, None] - 2, lo[:, None]))
-    d = np.where(ok, np.linalg.norm(po[i + 1] - po[i], axis=2), np.nan)
+    # a stripe of one point clips to it, and its i + 1 may be past the last point: masked
+    # below, but it must still be read
+    d = np.where(ok, np.linalg.norm(po[np.minimum(i + 1, len(po) - 1)] - po[i], axis=2), np.nan)
     out = np.full(len(seeds), np.nan)  # a stripe of one point has no spacing
     some = ok.any(1)
     out[some] = np.nanmedian(d[some], axis=1)
