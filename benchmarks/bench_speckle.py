@@ -24,7 +24,7 @@ Each error is the centre's distance from the true line, across it (robust sigma,
 Häusler & Herrmann's figure ``C lambda N (1 + m) / pi`` (``crossline.report.speckle``) is
 printed beside them, with the ratio of each model to it.
 
-Usage: python benchmarks/bench_speckle.py [--frames 60]
+Usage: python benchmarks/bench_speckle.py [--frames 30] [--f-numbers 4.3,8,14.5] [--angles 0,45,85]
 Writes benchmarks/results/speckle.txt and speckle.json.
 """
 
@@ -48,9 +48,15 @@ from crossline.scan.stripe_frame import extract  # noqa: E402
 from crossline.sim.optics import speckle_field  # noqa: E402
 
 RESULTS = HERE / "results"
-# the paper rig's optics: 405 nm, f/8, 2.4 um pixels, contrast 0.15, magnification ~0.08
-WAVELENGTH_NM, F_NUMBER, PITCH_UM, CONTRAST, MAGNIFICATION = 405.0, 8.0, 2.4, 0.15, 0.08
-GRAIN_PX = 0.41 * WAVELENGTH_NM * 1e-3 * F_NUMBER / PITCH_UM  # as crossline.sim.random_rig
+# the paper rig's optics: 405 nm, 2.4 um pixels, contrast 0.15, magnification ~0.08 (f/8)
+WAVELENGTH_NM, PITCH_UM, CONTRAST, MAGNIFICATION = 405.0, 2.4, 0.15, 0.08
+
+
+def grain_px(f_number: float) -> float:
+    """The image-plane speckle grain (px) of an f-number, as ``crossline.sim.random_rig``."""
+    return 0.41 * WAVELENGTH_NM * 1e-3 * f_number / PITCH_UM
+
+
 SS = 4  # sub-samples per pixel of the coherent model's grid
 SHAPE = (160, 256)  # frame (rows, columns)
 MODELS = ("sensor", "renderer", "coherent")  # no speckle, the renderer's, coherent imaging
@@ -138,16 +144,19 @@ def _robust_sigma(e: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(e - np.median(e)))) if e.size else float("nan")
 
 
-def run(frames: int, angles: list[float], sigmas: list[float]) -> list[dict]:
+def run(frames: int, angles: list[float], sigmas: list[float], f_number: float) -> list[dict]:
     rng = np.random.default_rng(22)
     out = []
+    grain = grain_px(f_number)
     for angle in angles:
         d_fine = _line_distance(SHAPE, SS, angle)
         for sigma in sigmas:
+            if sigma <= 1.2 * grain:  # no image of the stripe is narrower than the aperture's spot
+                continue
             # the object's stripe: its sigma before the aperture's |h|^2 (the grain) widens it
-            s0 = math.sqrt(max(sigma**2 - GRAIN_PX**2, 0.05**2))
+            s0 = math.sqrt(sigma**2 - grain**2)
             amp2 = (PEAK_DN * sigma / s0 * np.exp(-0.5 * (d_fine / s0) ** 2)).astype(np.float32)
-            mean_fine = _blur(amp2, GRAIN_PX * SS)
+            mean_fine = _blur(amp2, grain * SS)
             mean_px = _bin(mean_fine, SS)
             mask = (mean_px > 0.01 * PEAK_DN).astype(np.uint8)
             err = {f"{m} {e}": [] for m in MODELS for e in ("centroid", "gaussian")}
@@ -155,8 +164,8 @@ def run(frames: int, angles: list[float], sigmas: list[float]) -> list[dict]:
             bright = mean_px > 0.5 * mean_px.max()
             for _ in range(frames):
                 light = {"sensor": mean_px,
-                         "renderer": mean_px * speckle_field(rng, mask, CONTRAST, GRAIN_PX),
-                         "coherent": coherent_frame(rng, amp2, mean_fine, GRAIN_PX, CONTRAST, SS)}
+                         "renderer": mean_px * speckle_field(rng, mask, CONTRAST, grain),
+                         "coherent": coherent_frame(rng, amp2, mean_fine, grain, CONTRAST, SS)}
                 for name, lit in light.items():
                     contrast_px[name].append(float(np.std(lit[bright] / mean_px[bright])))
                     img = lit + BACKGROUND_DN + READ_DN * rng.standard_normal(lit.shape)
@@ -165,8 +174,8 @@ def run(frames: int, angles: list[float], sigmas: list[float]) -> list[dict]:
                         err[f"{name} centroid"].append(
                             _centroids(img.astype(np.float64) - BACKGROUND_DN, angle, sigma))
                     err[f"{name} gaussian"].append(_extracted(img, angle))
-            row = {"angle_deg": angle, "sigma_px": sigma,
-                   "dorsch_px": centre_bound_px(CONTRAST, WAVELENGTH_NM, F_NUMBER, PITCH_UM,
+            row = {"f_number": f_number, "grain_px": grain, "angle_deg": angle, "sigma_px": sigma,
+                   "dorsch_px": centre_bound_px(CONTRAST, WAVELENGTH_NM, f_number, PITCH_UM,
                                                 MAGNIFICATION),
                    "contrast_per_pixel": {k: float(np.mean(v)) for k, v in contrast_px.items()}}
             for k, v in err.items():
@@ -187,29 +196,32 @@ def format_row(r: dict) -> str:
                      + f" ({s[1] / r['dorsch_px']:.2f}x / {s[2] / r['dorsch_px']:.2f}x;"
                      + f" renderer / coherent {s[1] / s[2]:.2f})")
     cp = r["contrast_per_pixel"]
-    return (f"{r['angle_deg']:4.0f} deg  sigma {r['sigma_px']:.1f} px  Dorsch {r['dorsch_px']:.4f}  "
+    return (f"f/{r['f_number']:<4g} grain {r['grain_px']:.2f} px  {r['angle_deg']:2.0f} deg  "
+            f"sigma {r['sigma_px']:.1f} px  Dorsch {r['dorsch_px']:.4f}  "
             + "  ".join(parts)
             + f"  contrast per pixel {cp['renderer']:.3f} / {cp['coherent']:.3f}")
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--frames", type=int, default=60, help="frames per case and model")
+    ap.add_argument("--frames", type=int, default=30, help="frames per case and model")
     ap.add_argument("--angles", default="0,45,85", help="stripe angles to the rows, deg")
     ap.add_argument("--sigmas", default="0.8,1.2,2,3", help="stripe sigmas across it, px")
+    ap.add_argument("--f-numbers", default="4.3,8,14.5", help="f-numbers (the grain follows), e.g. 4.3,8,14.5")
     a = ap.parse_args(argv)
     t0 = time.perf_counter()
     head = (f"speckle only, one stripe per frame ({SHAPE[1]} x {SHAPE[0]} px), {a.frames} frames "
-            f"per case and model; optics of the paper rig: {WAVELENGTH_NM:g} nm, f/{F_NUMBER:g}, "
-            f"{PITCH_UM:g} um pixels, contrast {CONTRAST:g}, grain {GRAIN_PX:.3f} px, m "
+            f"per case and model; optics of the paper rig: {WAVELENGTH_NM:g} nm, f/{a.f_numbers} "
+            f"(grain 0.41 lambda N / pitch), {PITCH_UM:g} um pixels, contrast {CONTRAST:g}, m "
             f"{MAGNIFICATION:g}; robust sigma across the true line (px) and its ratio to "
             "Dorsch's figure; each: sensor only / the renderer's speckle "
             "(crossline.sim.optics.speckle_field, contrast C per pixel) / coherent imaging "
             "(|h * (a e^{i phi})|^2 mixed to contrast C per pixel), 8-bit frames, "
             f"peak {PEAK_DN:g} DN, read noise {READ_DN:g} DN")
     print(head, flush=True)
-    rows = run(a.frames, [float(x) for x in a.angles.split(",")],
-               [float(x) for x in a.sigmas.split(",")])
+    rows = [r for f in a.f_numbers.split(",")
+            for r in run(a.frames, [float(x) for x in a.angles.split(",")],
+                         [float(x) for x in a.sigmas.split(",")], float(f))]
     RESULTS.mkdir(parents=True, exist_ok=True)
     text = head + "\n" + "\n".join(format_row(r) for r in rows) + \
         f"\n{time.perf_counter() - t0:.0f} s\n"
