@@ -147,6 +147,27 @@ def test_gauge_exact_in_any_pose(use_up):
     assert f["n"] > 5000 and f["n_plate"] > 20000
 
 
+def test_gauge_plate_plane_trims_the_foot_of_an_unscanned_wall():
+    """The top face scanned on half its width only, the plate on a narrow patch beside the
+    block: the top's outline leaves the foot of the block's wall outside its margin, and the
+    stripe's mixed points there (up to 0.15 mm high, 3 % of the plate's) tilt a
+    least-squares plate plane towards them; the plate's plane trims them (no frames: the
+    heights against that plane)."""
+    rng = np.random.default_rng(11)
+    n_top, n_plate, n_foot = 6000, 20000, 600
+    top = np.column_stack([rng.uniform(-15, 15, n_top), rng.uniform(-4.5, 0.0, n_top),
+                           np.full(n_top, 20.0)])
+    plate = np.column_stack([rng.uniform(-15, 15, n_plate), rng.uniform(4.5, 12.0, n_plate),
+                             np.zeros(n_plate)])
+    foot = np.column_stack([rng.uniform(-15, 15, n_foot), rng.uniform(4.5, 4.8, n_foot),
+                            rng.uniform(0.005, 0.15, n_foot)])
+    pts = np.vstack([top, plate, foot]) + rng.normal(scale=0.003, size=(n_top + n_plate + n_foot, 3))
+    g = mt.measure_gauge_block(transform_points(pose(12), pts), 20.0,
+                               up=pose(12)[:3, 2])
+    assert abs(g.figures()["mean_mm"] - 20.0) < 0.001
+    assert np.degrees(mt.angle_between(g.plate_normal, pose(12)[:3, 2])) < 0.001
+
+
 def test_gauge_edges_are_left_out():
     pts, _ = gauge_scene(seed=7)
     rng = np.random.default_rng(7)

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
+from crossline.calibrate.laser_plane_fit import robust_plane
 from crossline.geometry import angle_between, fit_sphere, plane_distance
 from crossline.report.fitting import (
     MIN_POINTS,
@@ -147,6 +148,9 @@ class GaugeResult:
     # "frames": the plate's normal from each frame's stripes about their own centroids
     # (normal_within_frames); "plane": from the plate plane fitted over the whole scan
     normal_from: str = "plane"
+    # (N,) the plate points the plate's plane was fitted to (plate_mask less its trimmed
+    # outliers); None: all of plate_mask
+    plate_plane_mask: np.ndarray | None = None
 
     def figures(self) -> dict[str, Any]:
         """Mean, std, n, error of the mean against nominal, and the extra figures."""
@@ -244,6 +248,8 @@ def _edges(hull: ConvexHull, min_length: float = 0.5) -> np.ndarray:
     return hull.equations[keep]
 
 
+# the gauge plate's reference plane keeps points within this many robust sigmas of it
+PLATE_TRIM = 3.0
 # the largest standard error of a gauge's plate normal from its frames' stripes: 1e-4 rad is
 # 0.1 um of height per mm between a top point and the plate points of its frame
 MAX_TILT_RAD = 1e-4
@@ -406,7 +412,16 @@ def measure_gauge_block(
             f"measure_gauge_block: too few points away from the edges (top {int(top_mask.sum())}, "
             f"plate {int(plate_mask.sum())}); is the edge margin of {edge_margin_mm} mm too wide?"
         )
-    plate_n, plate_d = fit_plane(p[plate_mask])
+    # the plate's plane with its outliers trimmed (PLATE_TRIM robust sigmas): where the top
+    # face is scanned over part of its width only, its outline leaves plate points at the
+    # foot of the block's walls outside the margin; on one side of a narrow plate patch they
+    # tilt a least-squares plane, and the lever to the top face turns the tilt into height.
+    # Only the plane is trimmed: each frame's plate points keep referencing its heights (an
+    # arm error offsets a whole frame, which a trim about one plane would cut into)
+    plate_idx = np.flatnonzero(plate_mask)
+    plate_n, plate_d, kept = robust_plane(p[plate_idx], trim=PLATE_TRIM, seed=seed)
+    plane_mask = np.zeros(len(p), dtype=bool)
+    plane_mask[plate_idx[kept]] = True
     if float(np.median(p[top_mask] @ plate_n + plate_d)) < 0:
         plate_n, plate_d = -plate_n, -plate_d
     heights = plane_distance(p[top_mask], plate_n, plate_d)
@@ -481,6 +496,7 @@ def measure_gauge_block(
         heights_plane=heights_plane,
         frame_offsets=frame_offsets,
         normal_from=normal_from,
+        plate_plane_mask=plane_mask,
     )
 
 

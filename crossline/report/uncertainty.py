@@ -245,6 +245,9 @@ def gauge_figures(g: Any, points: np.ndarray, frame: np.ndarray | None, min_fram
     top_mask, plate_mask = (g.top_mask, g.plate_mask) if subset is None else \
         (g.top_mask[subset], g.plate_mask[subset])
     top, plate = np.flatnonzero(top_mask), np.flatnonzero(plate_mask)
+    # the points the plate's plane is fitted to: the report's, less its trimmed outliers
+    pm = getattr(g, "plate_plane_mask", None)
+    plane = plate if pm is None else np.flatnonzero(pm if subset is None else pm[subset])
     per_frame = g.reference == "frame" and frame is not None
     if per_frame:
         fr = np.asarray(frame) if subset is None else np.asarray(frame)[subset]
@@ -261,7 +264,7 @@ def gauge_figures(g: Any, points: np.ndarray, frame: np.ndarray | None, min_fram
         if within:  # the report's normal: each frame's stripes on both faces (artefacts)
             n = normal_within_frames(P[both], group, w[both], min_ratio=0.0)
         if n is None:
-            n, d = _weighted_plane(P[plate], wp, g.plate_normal)
+            n, d = _weighted_plane(P[plane], w[plane], g.plate_normal)
         else:
             n = n if float(n @ g.plate_normal) >= 0 else -n
             d = -float(np.average(P[plate] @ n, weights=wp))
