@@ -113,29 +113,16 @@ def _sensor_profiles(centrelines: Path | None, sensor: dict,
 
 def _line_cosines(frame: np.ndarray, u: np.ndarray,
                   v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per true centre point, from the line's slope to the nearest rows of its neighbouring
-    columns: the cosine between the column and the line's normal, and between the profile the
-    extractor takes there (the column for a line flatter than 45 deg, the row for a steeper
-    one) and the normal."""
-    from crossline.scan.labels import nearest_in_column
+    """Per true centre point, from the line's slope (:func:`~crossline.report.validation.
+    true_line_at`): the cosine between the column and the line's normal, and between the
+    profile the extractor takes there (the column for a line flatter than 45 deg, the row for
+    a steeper one) and the normal."""
+    from crossline.report.validation import true_line_at
 
-    span = int(u.max(initial=0)) + 3
+    span = int(u.max(initial=0)) + 4
     key = (frame * span + u).astype(np.float64)
     order = np.lexsort((v, key))
-    ks, vs = key[order], v[order]
-    side = []
-    for du in (1.0, -1.0):
-        j, _ = nearest_in_column(ks, vs, key + du, v)
-        side.append(np.where(j >= 0, du * (vs[np.maximum(j, 0)] - v), np.nan))
-    ahead, behind = side
-    # a column whose nearest row lies on another surface (a step, an occlusion) reads a jump:
-    # where the two sides disagree by more than 2x, the gentler one is the line's
-    agree = np.abs(ahead - behind) <= 0.5 * np.fmax(np.abs(ahead), np.abs(behind))
-    gentler = np.where(np.abs(ahead) <= np.abs(behind), ahead, behind)
-    slope = np.where(agree, 0.5 * (ahead + behind),
-                     np.where(np.isfinite(ahead) & np.isfinite(behind), gentler,
-                              np.fmax(ahead, behind)))
-    slope = np.nan_to_num(slope, nan=0.0)
+    _, slope = true_line_at(key[order], v[order], span, frame, u.astype(np.float64), v)
     h = np.hypot(1.0, slope)
     return 1.0 / h, np.where(np.abs(slope) > 1.0, np.abs(slope) / h, 1.0 / h)
 

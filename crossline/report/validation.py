@@ -24,6 +24,7 @@ __all__ = [
     "laser_plane_error",
     "plane_depth_range",
     "transform_error",
+    "true_line_at",
     "volume_points",
 ]
 
@@ -31,14 +32,17 @@ __all__ = [
 # ----------------------------------------------------------------------------- against truth
 
 
-def _true_line_at(key_u: np.ndarray, key_v: np.ndarray, span: int, frame: np.ndarray,
-                  u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def true_line_at(key_u: np.ndarray, key_v: np.ndarray, span: int, frame: np.ndarray,
+                 u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The true line's row at each point's (fractional) column and its slope (rows per column).
 
     ``key_u`` (frame * span + column) and ``key_v`` are one laser's true points sorted by
     (key, row). The row is interpolated between the line's rows at the columns either side of
-    the point (each the row nearest the point, for a line that crosses a column twice); where
-    only one of them exists its row is taken, with the slope of the next pair if there is one.
+    the point (each the row nearest the point, for a line that crosses a column twice). The
+    slope is the mean of the steps to the columns either side where they agree within 2x;
+    where they do not, a column's nearest row lies on another surface (a step, an occlusion)
+    and the gentler step is the line's. Where only one column has the line, its row is taken,
+    with the slope of the next pair of columns if there is one.
     """
     c0 = np.floor(u).astype(np.int64)
     rows = []
@@ -47,9 +51,15 @@ def _true_line_at(key_u: np.ndarray, key_v: np.ndarray, span: int, frame: np.nda
         j, _ = nearest_in_column(key_u, key_v, q, v)
         rows.append(np.where(j >= 0, key_v[np.maximum(j, 0)], np.nan))
     rm, r0, r1, r2 = rows
+    ahead, behind = r1 - r0, r0 - rm
+    with np.errstate(invalid="ignore"):
+        agree = np.abs(ahead - behind) <= 0.5 * np.fmax(np.abs(ahead), np.abs(behind))
+        gentler = np.where(np.abs(ahead) <= np.abs(behind), ahead, behind)
+    slope = np.where(agree, 0.5 * (ahead + behind),
+                     np.where(np.isfinite(ahead) & np.isfinite(behind), gentler,
+                              np.fmax(ahead, behind)))
+    slope = np.where(np.isfinite(slope), slope, r2 - r1)
     t = u - c0
-    slope = r1 - r0
-    slope = np.where(np.isfinite(slope), slope, np.where(np.isfinite(r0), r0 - rm, r2 - r1))
     row = np.where(np.isfinite(r0) & np.isfinite(r1), r0 + t * (r1 - r0),
                    np.where(np.isfinite(r0) & (t <= 0.5), r0 + t * slope,
                             np.where(np.isfinite(r1), r1 - (1.0 - t) * slope, np.nan)))
@@ -93,7 +103,7 @@ def label_errors(
             continue
         key = (tf[m] * span + tu[m]).astype(np.float64)
         order = np.lexsort((tv[m], key))
-        row, slope = _true_line_at(key[order], tv[m][order], span, frame, u, v)
+        row, slope = true_line_at(key[order], tv[m][order], span, frame, u, v)
         dist[name] = (v - row) / np.hypot(1.0, slope)
     da, db = np.abs(dist["A"]), np.abs(dist["B"])
     with np.errstate(invalid="ignore"):

@@ -250,7 +250,7 @@ def speckle_field(rng: np.random.Generator, mask: np.ndarray, contrast: float,
     if grain_px > 0:
         # renormalise to unit variance by the sampled kernel's own sum of squared weights: a
         # grain under a pixel is sampled coarsely, and the continuous Gaussian's 1 / (4 pi
-        # sigma^2) would leave a field of grain 0.55 px at 1.09 C
+        # sigma^2) would leave such a field with a contrast above C
         k1 = cv2.getGaussianKernel(2 * reach + 1, grain_px, cv2.CV_64F).ravel()
         ga *= np.float32(1.0 / float((k1 * k1).sum()))
     s = np.sqrt(np.log1p(contrast**2))
