@@ -207,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=30, help="frames per case and model")
     ap.add_argument("--angles", default="0,45,85", help="stripe angles to the rows, deg")
     ap.add_argument("--sigmas", default="0.8,1.2,2,3", help="stripe sigmas across it, px")
-    ap.add_argument("--f-numbers", default="4.3,8,14.5", help="f-numbers (the grain follows), e.g. 4.3,8,14.5")
+    ap.add_argument("--f-numbers", default="4.3,8,14.5", help="f-numbers (the grain follows)")
     a = ap.parse_args(argv)
     t0 = time.perf_counter()
     head = (f"speckle only, one stripe per frame ({SHAPE[1]} x {SHAPE[0]} px), {a.frames} frames "
