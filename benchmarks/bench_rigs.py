@@ -295,8 +295,9 @@ def main(argv: list[str] | None = None) -> int:
     lines.append("stripe centres against the speckle limit of each rig's optics (the report's validation, "
                  "crossline.report.speckle), every scan and laser: achieved robust sigma / bound on one "
                  "profile = ratio, and the ratio to the bound after the centre lines' smoothing; then "
-                 "the sensor's Cramer-Rao bound (shot, background and read noise) and the ratio to the "
-                 "combined bound sqrt(speckle^2 + sensor^2), one profile (smoothed)")
+                 "the sensor's Cramer-Rao bound (shot, background and read noise) and the bound of "
+                 "speckle and sensor together for each profile's width (stripe_bound_px), one profile "
+                 "(smoothed, neighbouring profiles sharing grains) and the achieved sigma's ratio to it")
     for name in caps:
         parts = []
         for scan, lab in sorted((rows[name].get("labels") or {}).items()):
@@ -304,8 +305,9 @@ def main(argv: list[str] | None = None) -> int:
                 part = (f"{scan}/{laser} {sl['achieved_sigma_px']:.3f}/{sl['bound_px']:.3f} px = "
                         f"{sl['ratio']:.2f}x ({sl['ratio_smoothed']:.2f}x)")
                 if sl.get("ratio_combined") is not None:
-                    part += (f", sensor {sl['sensor_bound_px']:.3f} px, combined "
-                             f"{sl['combined_bound_px']:.3f} px = {sl['ratio_combined']:.2f}x "
+                    part += (f", sensor {sl['sensor_bound_px']:.3f} px, bound "
+                             f"{sl['combined_bound_px']:.3f} px ("
+                             f"{sl['combined_bound_smoothed_px']:.3f}) = {sl['ratio_combined']:.2f}x "
                              f"({sl['ratio_combined_smoothed']:.2f}x)")
                 parts.append(part)
         lines.append(f"{name:<16} " + ("  ".join(parts) if parts else "no speckle figures"))

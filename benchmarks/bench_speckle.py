@@ -22,7 +22,10 @@ at an angle to the rows), speckle only (no sensor noise), and their centres meas
 
 Each error is the centre's distance from the true line, across it (robust sigma, px). Dorsch,
 Häusler & Herrmann's figure ``C lambda N (1 + m) / pi`` (``crossline.report.speckle``) is
-printed beside them, with the ratio of each model to it.
+printed beside them, with the ratio of each model to it; and the bound of speckle and sensor
+noise together for the stripe's width (``crossline.report.speckle.stripe_bound_px``, the
+profile the extractor takes: the column below 45 deg, the row above), with the extractor's
+ratio to it under each model.
 
 Usage: python benchmarks/bench_speckle.py [--frames 30] [--f-numbers 4.3,8,14.5] [--angles 0,45,85]
 Writes benchmarks/results/speckle.txt and speckle.json.
@@ -43,7 +46,8 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
-from crossline.report.speckle import centre_bound_px  # noqa: E402
+from crossline.report.speckle import centre_bound_px, stripe_bound_px  # noqa: E402
+from crossline.report.speckle import grain_px as optics_grain_px  # noqa: E402
 from crossline.scan.stripe_frame import extract  # noqa: E402
 from crossline.sim.optics import speckle_field  # noqa: E402
 
@@ -54,7 +58,16 @@ WAVELENGTH_NM, PITCH_UM, CONTRAST, MAGNIFICATION = 405.0, 2.4, 0.15, 0.08
 
 def grain_px(f_number: float) -> float:
     """The image-plane speckle grain (px) of an f-number, as ``crossline.sim.random_rig``."""
-    return 0.41 * WAVELENGTH_NM * 1e-3 * f_number / PITCH_UM
+    return optics_grain_px(WAVELENGTH_NM, f_number, PITCH_UM)
+
+
+def profile_bound_px(sigma: float, angle_deg: float, grain: float) -> float:
+    """The bound across the line for the profile the extractor takes (column or row)."""
+    t = math.radians(angle_deg)
+    cos_p = max(math.cos(t), math.sin(t))
+    one, _ = stripe_bound_px(PEAK_DN, sigma / cos_p, 0.0, math.hypot(READ_DN, 1 / math.sqrt(12)),
+                             contrast=CONTRAST, grain=grain, shot=False)
+    return cos_p * one
 
 
 SS = 4  # sub-samples per pixel of the coherent model's grid
@@ -177,6 +190,7 @@ def run(frames: int, angles: list[float], sigmas: list[float], f_number: float) 
             row = {"f_number": f_number, "grain_px": grain, "angle_deg": angle, "sigma_px": sigma,
                    "dorsch_px": centre_bound_px(CONTRAST, WAVELENGTH_NM, f_number, PITCH_UM,
                                                 MAGNIFICATION),
+                   "bound_px": profile_bound_px(sigma, angle, grain),
                    "contrast_per_pixel": {k: float(np.mean(v)) for k, v in contrast_px.items()}}
             for k, v in err.items():
                 e = np.concatenate(v) if v else np.zeros(0)
@@ -196,8 +210,15 @@ def format_row(r: dict) -> str:
                      + f" ({s[1] / r['dorsch_px']:.2f}x / {s[2] / r['dorsch_px']:.2f}x;"
                      + f" renderer / coherent {s[1] / s[2]:.2f})")
     cp = r["contrast_per_pixel"]
+    g = [r[f"{m} gaussian"]["sigma_px"] / r["bound_px"] for m in MODELS[1:]]
+    if r["sensor centroid"]["n"]:
+        c = [r[f"{m} centroid"]["sigma_px"] / r["bound_px"] for m in MODELS[1:]]
+        g[1] = f"{g[1]:.2f}x; centroid {c[0]:.2f}x / {c[1]:.2f}x"
+    else:
+        g[1] = f"{g[1]:.2f}x"
     return (f"f/{r['f_number']:<4g} grain {r['grain_px']:.2f} px  {r['angle_deg']:2.0f} deg  "
             f"sigma {r['sigma_px']:.1f} px  Dorsch {r['dorsch_px']:.4f}  "
+            f"bound {r['bound_px']:.4f} (gaussian / bound {g[0]:.2f}x / {g[1]})  "
             + "  ".join(parts)
             + f"  contrast per pixel {cp['renderer']:.3f} / {cp['coherent']:.3f}")
 
@@ -217,7 +238,9 @@ def main(argv: list[str] | None = None) -> int:
             "Dorsch's figure; each: sensor only / the renderer's speckle "
             "(crossline.sim.optics.speckle_field, contrast C per pixel) / coherent imaging "
             "(|h * (a e^{i phi})|^2 mixed to contrast C per pixel), 8-bit frames, "
-            f"peak {PEAK_DN:g} DN, read noise {READ_DN:g} DN")
+            f"peak {PEAK_DN:g} DN, read noise {READ_DN:g} DN; bound: speckle and sensor "
+            "together for the stripe's width (crossline.report.speckle.stripe_bound_px) and "
+            "the extractor's and the centroid's ratios to it (renderer / coherent)")
     print(head, flush=True)
     rows = [r for f in a.f_numbers.split(",")
             for r in run(a.frames, [float(x) for x in a.angles.split(",")],

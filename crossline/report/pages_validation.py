@@ -199,12 +199,14 @@ def page_validation(m: dict[str, Any], plots: dict[str, Any]) -> list[Figure]:
                "band. Sensor: the Cramér-Rao bound of one profile as the extractor takes it "
                "(column or row) from shot, background and read noise, across the line (the "
                "true stripes' peak, width and background in the simulator's truth; the robust "
-               "sigma over the true points); the combined figure adds the speckle's and the "
-               "sensor's variances (independent to first order). Ratios: achieved over the "
-               "speckle figure and over the combined one (profile / smoothed).",
+               "sigma over the true points). Bound: speckle of the rig's contrast and grain and "
+               "the sensor's noise together, for each profile's width (the best weighted "
+               "least-squares fit of the profile; after the smoothing, neighbouring profiles "
+               "share grains). Ratios: achieved over the speckle figure and over the bound "
+               "(profile / smoothed).",
                size=8)
         p.table(["Scan", "Laser", "speckle (profile / smoothed)", "sensor", "achieved",
-                 "/ speckle", "/ combined"], rows,
+                 "/ speckle", "/ bound"], rows,
                 [LEFT, LEFT + 0.1, LEFT + 0.17, LEFT + 0.38, LEFT + 0.48, LEFT + 0.58, LEFT + 0.75],
                 aligns=["left"] * 7, size=7.6)
     figs = [p.fig]

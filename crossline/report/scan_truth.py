@@ -63,16 +63,18 @@ def _mixture_sigma(sigmas: np.ndarray) -> float:
 
 
 SENSOR_ROWS = 20000  # true centre points per laser the sensor bound is evaluated at, at most
+STRIPE_ROWS = 2000  # of those, the points the bound of speckle and sensor together is taken at
 
 
 def _sensor_profiles(centrelines: Path | None, sensor: dict,
-                     found: dict[str, np.ndarray]) -> dict[str, dict] | None:
+                     found: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, dict] | None:
     """Per laser: the true profiles of the visible centre points as they reach the pixels (peak
     and sigma after the PSF, background) from truth/<scan>_centrelines.parquet, along the
-    profile the extractor takes there (column or row) and its cosine to the line's normal, at
-    the (frame, column) keys where the pipeline found a point of that laser (``found``:
-    frame * 2^20 + column), and the sensor's read noise with the ADC's rounding (gain^2 / 12)
-    and PRNU."""
+    profile the extractor took there (column or row) and its cosine to the line's normal, at
+    the (frame, column) keys where the pipeline found a point of that laser (``found``: the
+    sorted keys frame * 2^20 + column and the profile's axis there, 0 column, 1 row, -1
+    unknown: the row where the line is steeper than 45 deg), and the sensor's read noise with
+    the ADC's rounding (gain^2 / 12) and PRNU."""
     import pandas as pd
 
     need = ["frame", "laser", "u", "v", "visible", "peak_e", "sigma_px", "background_e"]
@@ -90,11 +92,17 @@ def _sensor_profiles(centrelines: Path | None, sensor: dict,
     for name, g in t[t["visible"]].groupby("laser"):
         g = g.sort_values(["frame", "u"], kind="stable")
         a, s, b = (g[c].to_numpy(np.float64) for c in ("peak_e", "sigma_px", "background_e"))
-        cos_c, cos_p = _line_cosines(g["frame"].to_numpy(np.int64), g["u"].to_numpy(np.int64),
+        cos_c, cos_r = _line_cosines(g["frame"].to_numpy(np.int64), g["u"].to_numpy(np.int64),
                                      g["v"].to_numpy(np.float64))
         key = g["frame"].to_numpy(np.int64) * (1 << 20) + g["u"].to_numpy(np.int64)
+        keys, axes = found.get(str(name), (np.zeros(0, np.int64), np.zeros(0, np.int8)))
+        at = np.searchsorted(keys, key).clip(0, max(keys.size - 1, 0))
         ok = np.isfinite(a) & np.isfinite(s) & np.isfinite(b) & (a > 0) & (s > 0)
-        ok &= np.isin(key, found.get(str(name), np.zeros(0, np.int64)))
+        ok &= (keys[at] == key) if keys.size else np.zeros(key.size, bool)
+        axis = axes[at] if keys.size else np.full(key.size, -1)
+        # a column profile of a steep line holds several pixels of its length, a row one about one
+        row = (axis == 1) | ((axis < 0) & (cos_r > cos_c))
+        cos_p = np.where(row, cos_r, cos_c)
         a, s, b, cos_c, cos_p = a[ok], s[ok], b[ok], cos_c[ok], cos_p[ok]
         if a.size > SENSOR_ROWS:  # a fixed sample: the same report from the same capture
             k = np.random.default_rng(0).choice(a.size, SENSOR_ROWS, replace=False)
@@ -114,9 +122,8 @@ def _sensor_profiles(centrelines: Path | None, sensor: dict,
 def _line_cosines(frame: np.ndarray, u: np.ndarray,
                   v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per true centre point, from the line's slope (:func:`~crossline.report.validation.
-    true_line_at`): the cosine between the column and the line's normal, and between the
-    profile the extractor takes there (the column for a line flatter than 45 deg, the row for
-    a steeper one) and the normal."""
+    true_line_at`): the cosines between the line's normal and the column, and the row (the
+    two profiles the extractor can take)."""
     from crossline.report.validation import true_line_at
 
     span = int(u.max(initial=0)) + 4
@@ -124,7 +131,7 @@ def _line_cosines(frame: np.ndarray, u: np.ndarray,
     order = np.lexsort((v, key))
     _, slope = true_line_at(key[order], v[order], span, frame, u.astype(np.float64), v)
     h = np.hypot(1.0, slope)
-    return 1.0 / h, np.where(np.abs(slope) > 1.0, np.abs(slope) / h, 1.0 / h)
+    return 1.0 / h, np.abs(slope) / h
 
 
 def _speckle_limit(centre: dict, truth: dict, points: Path, smooth_px: int | None = None,
@@ -136,10 +143,12 @@ def _speckle_limit(centre: dict, truth: dict, points: Path, smooth_px: int | Non
 
     With the true centre lines' profiles (``centrelines``: peak, sigma, background of each
     true point where the pipeline found one), also the sensor's bound (shot and read noise,
-    Cramér-Rao, one per true point) and the combined bound (speckle and sensor, variances
-    added), each summarised as the robust sigma of errors drawn with the points' bounds, like
-    the achieved sigma; and the achieved sigma's ratio to the combined bound, for one profile
-    and after the smoothing.
+    Cramér-Rao, one per true point) and the combined bound (speckle of the rig's contrast and
+    grain and the sensor's noise together, for each profile's width:
+    :func:`~crossline.report.speckle.stripe_bound_px`), each summarised as the robust sigma of
+    errors drawn with the points' bounds, like the achieved sigma; and the achieved sigma's
+    ratio to the combined bound, for one profile and after the smoothing (neighbouring profiles
+    sharing speckle grains).
     """
     from crossline.io.columns import LASER_CODES, read_columns
     from crossline.report import speckle as sp
@@ -149,7 +158,7 @@ def _speckle_limit(centre: dict, truth: dict, points: Path, smooth_px: int | Non
     if not (pitch and fno and cam.get("K") and centre):
         return None
     try:
-        z = read_columns(points, ["frame", "laser", "u", "z_cam"])
+        z = read_columns(points, ["frame", "laser", "u", "z_cam", "axis"])
     except Exception:  # pyarrow raises several types for broken files
         return None
     if "z_cam" not in z or "laser" not in z:  # an older points file without camera coordinates
@@ -157,7 +166,10 @@ def _speckle_limit(centre: dict, truth: dict, points: Path, smooth_px: int | Non
     found = {}
     if "frame" in z and "u" in z:
         key = z["frame"].astype(np.int64) * (1 << 20) + np.rint(z["u"]).astype(np.int64)
-        found = {n: np.unique(key[z["laser"] == c]) for n, c in LASER_CODES.items()}
+        axis = z["axis"].astype(np.int8) if "axis" in z else np.full(key.size, -1, np.int8)
+        for n, c in LASER_CODES.items():
+            keys, first = np.unique(key[z["laser"] == c], return_index=True)
+            found[n] = (keys, axis[z["laser"] == c][first])
     profiles = _sensor_profiles(centrelines, sensor, found) or {}
     fx = float(cam["K"][0][0])
     out: dict[str, Any] = {}
@@ -187,12 +199,24 @@ def _speckle_limit(centre: dict, truth: dict, points: Path, smooth_px: int | Non
                                                      pr["background_e"], pr["read_noise_e"],
                                                      pr["prnu"])
             sb = _mixture_sigma(each)
-            cb = _mixture_sigma(sp.combined_bound_px(b, each))
+            # speckle and sensor together, for each profile's width (a fixed sample: the
+            # covariance matrices cost a thousand times the sensor's sums)
+            k = np.arange(each.size)
+            if k.size > STRIPE_ROWS:
+                k = np.sort(np.random.default_rng(0).choice(k.size, STRIPE_ROWS, replace=False))
+            grain = las.get("speckle_grain_px") or sp.grain_px(
+                float(las["wavelength_nm"]), float(fno), float(pitch))
+            one, smooth = sp.stripe_bound_px(
+                pr["peak_e"][k], pr["sigma_px"][k], pr["background_e"][k], pr["read_noise_e"],
+                pr["prnu"], contrast=float(las["speckle_contrast"]), grain=float(grain),
+                step_px=1.0 / pr["cosine"][k], smooth_px=int(smooth_px) if smooth_px else None)
+            cb = _mixture_sigma(pr["cosine"][k] * one)
+            cbs = _mixture_sigma(pr["cosine"][k] * smooth) if smooth is not None else cb
             row.update({
-                "sensor_bound_px": sb, "combined_bound_px": cb,
+                "sensor_bound_px": sb, "combined_bound_px": cb, "grain_px": float(grain),
                 "ratio_combined": sig / cb if cb > 0 else None,
-                "combined_bound_smoothed_px": cb * gain,
-                "ratio_combined_smoothed": sig / (cb * gain) if cb > 0 else None,
+                "combined_bound_smoothed_px": cbs,
+                "ratio_combined_smoothed": sig / cbs if cbs > 0 else None,
                 "sensor": {"points": int(each.size),
                            "peak_e": float(np.median(pr["peak_e"])),
                            "sigma_px": float(np.median(pr["sigma_px"])),

@@ -24,8 +24,19 @@ taken as Gaussian of that variance, its dependence on ``x0`` left out, as Morten
 Nat. Methods 7, 377-381, 2010, do for localisation), so the Fisher information on ``x0`` is
 ``I = sum_i (d mu_i / d x0)^2 / (mu_i + r^2)`` and ``var(x0) >= 1 / I``. For a wide,
 well-sampled stripe under shot noise alone this is ``sigma^2 / N`` with ``N`` the stripe's
-electrons. Speckle multiplies the light and shot noise is drawn afterwards, independently, so
-to first order their variances add: ``sqrt(speckle^2 + sensor^2)`` (``combined_bound_px``).
+electrons. Speckle multiplies the light and shot noise is drawn afterwards, independently.
+
+Both together, for a stripe of any width (``stripe_bound_px``): the speckle field ``s`` of
+contrast ``C`` per pixel multiplies the stripe's light, so pixel ``i`` holds ``mu_i`` with the
+covariance ``C^2 L_i L_j rho_ij`` (``L`` the laser's share of ``mu``, ``rho`` the field's
+correlation between the pixels, from the grain) plus the sensor's diagonal; as for the sensor
+alone, the covariance's own dependence on ``x0`` is left out, so the bound is
+``1 / (dmu' Sigma^-1 dmu)``: the variance of the best weighted least-squares profile fit, the
+class of estimator the workflow's ``gaussian`` extractor belongs to. Unlike Dorsch's figure
+it grows with the stripe's width (a wide stripe holds more grains, each moving its centre) and
+shrinks with a grain smaller than a pixel. After the centre lines' smoothing along the stripe,
+neighbouring profiles share grains: the smoothed bound carries the field's correlation along
+the line, the sensor's part averages as independent noise.
 """
 
 from __future__ import annotations
@@ -35,11 +46,15 @@ import math
 import numpy as np
 from scipy.special import ndtr
 
-__all__ = ["centre_bound_px", "combined_bound_px", "sensor_bound_px", "smoothing_gain"]
+__all__ = ["centre_bound_px", "field_correlation", "grain_px", "sensor_bound_px", "smoothing_gain",
+           "stripe_bound_px"]
 
 PHASES = 8  # sub-pixel positions of the centre the sensor bound is averaged over
 CHUNK = 4096  # profiles per block of the sensor bound, at most
 BUDGET = 2_000_000  # values per block (profiles x PHASES x pixels), ~16 MB an array
+MATRIX_BUDGET = 4_000_000  # values per block of covariance matrices (stripe bound), ~32 MB
+WIDE = 2.0  # px: profiles at least this wide are averaged over 2 phases of their centre
+GRAIN_LAMBDA_N = 0.41  # the image grain's sigma (the field's Gaussian) per lambda x N (1 + m)
 
 
 def centre_bound_px(contrast: float, wavelength_nm: float, f_number: float, pixel_um: float,
@@ -106,6 +121,103 @@ def sensor_bound_px(peak_e, sigma_px, background_e=0.0, read_noise_e=0.0, prnu=0
     return out.reshape(shape) if shape else float(out[0])
 
 
-def combined_bound_px(speckle_px, sensor_px):
-    """Speckle and sensor noise together (px): independent to first order, their variances add."""
-    return np.hypot(speckle_px, sensor_px)
+def grain_px(wavelength_nm: float, f_number: float, pixel_um: float,
+             magnification: float = 0.0) -> float:
+    """The image's speckle grain (px): sigma of the Gaussian that correlates the field, as the
+    renderer draws it (``crossline.sim.optics.speckle_field``) from the optics."""
+    return GRAIN_LAMBDA_N * wavelength_nm * 1e-3 * f_number * (1.0 + magnification) / pixel_um
+
+
+def field_correlation(lag_px, grain: float, contrast: float) -> np.ndarray:
+    """Correlation of the speckle field's values between pixels ``lag_px`` apart along one axis.
+
+    The field is ``exp(s g - s^2 / 2)``, ``g`` white noise under a Gaussian kernel of sigma
+    ``grain`` sampled on the pixels, ``s^2 = log(1 + C^2)``: ``g``'s correlation is the sampled
+    kernel's autocorrelation (at a fractional lag, the Gaussian through its value at lag 1), and
+    the log-normal's is ``(exp(s^2 r) - 1) / (exp(s^2) - 1)``. Along two axes it is the product.
+    """
+    lag = np.abs(np.asarray(lag_px, dtype=np.float64))
+    if grain <= 0:
+        r = (lag == 0).astype(np.float64)
+    else:
+        import cv2
+
+        reach = int(np.ceil(4 * grain))
+        k = cv2.getGaussianKernel(2 * reach + 1, grain, cv2.CV_64F).ravel()
+        ac = np.correlate(k, k, "full")[2 * reach:] / float(k @ k)  # lags 0 .. 2 reach
+        whole = np.isclose(lag, np.rint(lag), rtol=0.0, atol=1e-9)
+        i = np.minimum(np.rint(lag).astype(np.int64), ac.size - 1)
+        r = np.where(whole, np.where(np.rint(lag) < ac.size, ac[i], 0.0), ac[1] ** (lag * lag))
+    s2 = math.log1p(contrast * contrast)
+    return np.expm1(s2 * r) / math.expm1(s2) if s2 > 0 else r
+
+
+def stripe_bound_px(peak_e, sigma_px, background_e=0.0, read_noise_e=0.0, prnu=0.0, *,
+                    contrast: float, grain: float, step_px=1.0, smooth_px: int | None = None,
+                    shot: bool = True):
+    """Bound (px, 1 sigma) on one profile's centre from speckle and sensor noise together.
+
+    Arguments as :func:`sensor_bound_px`, with the speckle's ``contrast`` per pixel and
+    ``grain`` (px, :func:`grain_px`); ``step_px``, the distance along the line from one profile
+    to the next (1 / the profile's cosine to the line's normal). Returns the bound of one
+    profile and, with ``smooth_px``, of its centre after the quadratic Savitzky-Golay smoothing
+    along the stripe over that many profiles (a tuple of arrays, or of floats). ``shot=False``
+    leaves the photon noise out (frames whose noise is the read noise alone, in counts).
+    """
+    from scipy.signal import savgol_coeffs
+
+    a, s, b, r, q, h = np.broadcast_arrays(*(np.asarray(x, dtype=np.float64) for x in
+                                              (peak_e, sigma_px, background_e, read_noise_e,
+                                               prnu, step_px)))
+    shape = a.shape
+    a, s, b, r, q, h = (x.reshape(-1) for x in (a, s, b, r, q, h))
+    one, smooth = np.full(a.size, np.nan), np.full(a.size, np.nan)
+    ok = (a >= 0) & (s > 0) & (b >= 0) & (r >= 0) & (q >= 0) & (h > 0)
+    ok &= np.isfinite(a + s + b + r + q + h)
+    one[(a == 0) & ok], smooth[(a == 0) & ok] = np.inf, np.inf
+    w = None
+    if smooth_px and int(smooth_px) >= 3:
+        n = int(smooth_px) + 1 - int(smooth_px) % 2
+        w = savgol_coeffs(n, 2)
+        lags = np.abs(np.arange(n)[:, None] - np.arange(n)[None, :])
+    idx = np.flatnonzero(ok & (a > 0))
+    idx = idx[np.argsort(s[idx], kind="stable")]
+    k = 0
+    while k < idx.size:
+        j = idx[k : k + CHUNK]
+        # beyond 6 sigma a pixel holds 1e-8 of the profile's slope; a profile wider than the
+        # WIDE pixels hardly changes with its centre's phase, so fewer phases are averaged
+        half = int(np.ceil(6.0 * s[j[-1]])) + 2
+        m = 2 * half + 1
+        nph = PHASES if s[j[0]] < WIDE else 2
+        if nph == PHASES:
+            j = j[s[j] < WIDE]
+        phase = (np.arange(nph) + 0.5) / nph - 0.5
+        j = j[: max(1, MATRIX_BUDGET // (nph * m * m))]
+        k += j.size
+        edge = np.arange(-half, half + 2) - 0.5
+        t = (edge[None, None, :] - phase[None, :, None]) / s[j, None, None]
+        g = np.exp(-0.5 * t * t)
+        t0, t1 = t[:, :, :-1], t[:, :, 1:]
+        mass = np.where(t0 > 0, ndtr(-t0) - ndtr(-t1), ndtr(t1) - ndtr(t0))
+        aj = a[j, None, None]
+        light = aj * s[j, None, None] * math.sqrt(2.0 * math.pi) * mass  # the laser's share
+        mu = b[j, None, None] + light
+        dmu = aj * (g[:, :, :-1] - g[:, :, 1:])
+        noise = (mu if shot else 0.0) + r[j, None, None] ** 2 + (q[j, None, None] * mu) ** 2
+        rho = field_correlation(np.arange(m)[:, None] - np.arange(m)[None, :], grain, contrast)
+        spk = contrast**2 * light[..., :, None] * light[..., None, :] * rho
+        cov = spk + noise[..., :, None] * np.eye(m)
+        sol = np.linalg.solve(cov, dmu[..., None])[..., 0]
+        fisher = np.einsum("...i,...i->...", dmu, sol)
+        one[j] = np.sqrt((1.0 / fisher).mean(axis=1))
+        if w is not None:
+            wt = sol / fisher[..., None]  # the fit's weights on the pixels
+            v_spk = np.einsum("...i,...ij,...j->...", wt, spk, wt)
+            v_sen = np.einsum("...i,...i,...i->...", wt, noise, wt)
+            along = np.einsum("i,nij,j->n", w, field_correlation(
+                lags[None] * h[j, None, None], grain, contrast), w)
+            smooth[j] = np.sqrt((v_spk * along[:, None] + v_sen * float(w @ w)).mean(axis=1))
+    if not shape:
+        return float(one[0]), (float(smooth[0]) if w is not None else None)
+    return one.reshape(shape), (smooth.reshape(shape) if w is not None else None)

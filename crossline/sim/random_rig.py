@@ -51,6 +51,7 @@ from crossline.board import Board
 from crossline.camera import Camera
 from crossline.errors import CrosslineError
 from crossline.geometry import make_transform, rotvec_to_matrix
+from crossline.report.speckle import grain_px
 from crossline.sim.presets import (
     ArmNoiseSpec,
     BoardSpec,
@@ -195,7 +196,7 @@ def _laser(rng, cam: Camera, D: float, theta: float, alpha: float, offset_px: fl
     w0 = 2.0 * sig * cos_a * D / cam.fx
     need = np.degrees(np.arctan(0.6 * field_mm * 1.45 / s0))
     fan = next((f for f in FAN_HALF_DEG if f >= need), FAN_HALF_DEG[-1])
-    grain = float(np.clip(0.41 * wavelength * 1e-3 * f_number / pitch, 0.3, 1.5))
+    grain = float(np.clip(grain_px(wavelength, f_number, pitch), 0.3, 1.5))
     return laser_through(
         e, P, L, wavelength_nm=wavelength, waist_mm=float(w0), m2=round(rng.uniform(1.05, 1.5), 3),
         fan_half_angle_deg=fan, fan_rolloff=round(rng.uniform(0.05, 0.3), 3),
