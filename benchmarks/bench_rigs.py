@@ -297,7 +297,9 @@ def main(argv: list[str] | None = None) -> int:
                  "profile = ratio, and the ratio to the bound after the centre lines' smoothing; then "
                  "the sensor's Cramer-Rao bound (shot, background and read noise) and the bound of "
                  "speckle and sensor together for each profile's width (stripe_bound_px), one profile "
-                 "(smoothed, neighbouring profiles sharing grains) and the achieved sigma's ratio to it")
+                 "(smoothed, neighbouring profiles sharing grains) and the achieved sigma's ratio to it; "
+                 "the lateral resolution the smoothing leaves: the points' spacing along the stripe and "
+                 "the ripple it passes at half amplitude")
     for name in caps:
         parts = []
         for scan, lab in sorted((rows[name].get("labels") or {}).items()):
@@ -309,6 +311,9 @@ def main(argv: list[str] | None = None) -> int:
                              f"{sl['combined_bound_px']:.3f} px ("
                              f"{sl['combined_bound_smoothed_px']:.3f}) = {sl['ratio_combined']:.2f}x "
                              f"({sl['ratio_combined_smoothed']:.2f}x)")
+                if sl.get("spacing_mm") is not None and sl.get("half_amplitude_mm") is not None:
+                    part += (f", spacing {sl['spacing_mm'] * 1e3:.0f} um, half amplitude at "
+                             f"{sl['half_amplitude_mm']:.2f} mm")
                 parts.append(part)
         lines.append(f"{name:<16} " + ("  ".join(parts) if parts else "no speckle figures"))
     lines.append("sphere form against what sets it: the range of n residuals is form / rms times their "

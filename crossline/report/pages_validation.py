@@ -177,18 +177,24 @@ def page_validation(m: dict[str, Any], plots: dict[str, Any]) -> list[Figure]:
     rows = []
     for name, s in m["scans"].items():
         for laser, sl in sorted(((s.get("truth_labels") or {}).get("speckle_limit") or {}).items()):
-            rows.append([name, laser, f"{fmt(sl['bound_px'], 'px', 3)} / "
-                         f"{fmt(sl.get('bound_smoothed_px'), 'px', 3)}",
-                         fmt(sl.get("sensor_bound_px"), "px", 3),
-                         fmt(sl["achieved_sigma_px"], "px", 3),
+            rows.append([name, laser, f"{fmt(sl['bound_px'], '', 3)} / "
+                         f"{fmt(sl.get('bound_smoothed_px'), '', 3)}",
+                         fmt(sl.get("sensor_bound_px"), "", 3),
+                         f"{fmt(sl.get('combined_bound_px'), '', 3)} / "
+                         f"{fmt(sl.get('combined_bound_smoothed_px'), '', 3)}",
+                         fmt(sl["achieved_sigma_px"], "", 3),
                          f"{sl['ratio']:.2f}× / {sl['ratio_smoothed']:.2f}×"
                          if sl.get("ratio_smoothed") is not None else "–",
                          f"{sl['ratio_combined']:.2f}× / {sl['ratio_combined_smoothed']:.2f}×"
-                         if sl.get("ratio_combined_smoothed") is not None else "–"])
+                         if sl.get("ratio_combined_smoothed") is not None else "–",
+                         f"{fmt(sl.get('spacing_mm'), '', 3)} / {fmt(sl.get('half_amplitude_mm'), '', 2)}"
+                         if sl.get("spacing_mm") is not None else "–"])
+    figs = [p.fig]
     if rows:
-        p.gap(0.1)
-        p.text("Stripe centres against the speckle limit", size=10, weight="bold")
-        p.text("Speckle: the speckle-limited uncertainty of one centre (Dorsch, Häusler & "
+        # a page of its own: below the calibration, artefact and label tables it ran off the page
+        p = Page(m, "Validation: stripe centres against the speckle limit")
+        figs.append(p.fig)
+        p.text("Figure: the speckle-limited uncertainty of one centre (Dorsch, Häusler & "
                "Herrmann 1994: contrast × wavelength × f-number × (1 + magnification) / π, per "
                "pixel pitch; the centroid's figure for a stripe about as wide as the aperture's "
                "spot: a fitted profile can beat it on narrow stripes, wide stripes exceed it), "
@@ -203,13 +209,14 @@ def page_validation(m: dict[str, Any], plots: dict[str, Any]) -> list[Figure]:
                "the sensor's noise together, for each profile's width (the best weighted "
                "least-squares fit of the profile; after the smoothing, neighbouring profiles "
                "share grains). Ratios: achieved over the speckle figure and over the bound "
-               "(profile / smoothed).",
+               "(profile / smoothed). Resolution: the points' spacing along the stripe and the "
+               "ripple the smoothing passes at half its amplitude (mm).",
                size=8)
-        p.table(["Scan", "Laser", "speckle (profile / smoothed)", "sensor", "achieved",
-                 "/ speckle", "/ bound"], rows,
-                [LEFT, LEFT + 0.1, LEFT + 0.17, LEFT + 0.38, LEFT + 0.48, LEFT + 0.58, LEFT + 0.75],
-                aligns=["left"] * 7, size=7.6)
-    figs = [p.fig]
+        p.table(["Scan", "Laser", "figure px", "sensor px", "bound px", "achieved px",
+                 "÷ figure", "÷ bound", "resolution mm"], rows,
+                [LEFT, LEFT + 0.065, LEFT + 0.11, LEFT + 0.225, LEFT + 0.3, LEFT + 0.415,
+                 LEFT + 0.5, LEFT + 0.62, LEFT + 0.74],
+                aligns=["left"] * 9, size=7.0)
     for name, s in m["scans"].items():
         sp = plots["scans"].get(name, {})
         if (s["artefact"] == "freeform" and sp.get("deviation") is not None

@@ -134,6 +134,54 @@ def _line_cosines(frame: np.ndarray, u: np.ndarray,
     return 1.0 / h, np.abs(slope) / h
 
 
+SPACING_ROWS = 2_000_000  # points read for the spacing along the stripes, at most
+
+
+def stripe_spacing_mm(points: Path) -> dict[str, float]:
+    """Per laser: the median distance (mm) between a stripe's points one profile apart (the
+    next column, or row for a row-profiled stripe) in the same frame, from the first
+    ``SPACING_ROWS`` points of the points file."""
+    import pyarrow.parquet as pq
+
+    from crossline.io.columns import LASER_CODES, laser_codes_of
+
+    f = pq.ParquetFile(points)
+    names = set(f.schema_arrow.names)
+    need = ["frame", "laser", "u", "v", "x", "y", "z"]
+    if not set(need) <= names:
+        return {}
+    cols = need + (["axis"] if "axis" in names else [])
+    parts, n = [], 0
+    for g in range(f.num_row_groups):
+        t = f.read_row_group(g, columns=cols)
+        parts.append(t)
+        n += t.num_rows
+        if n >= SPACING_ROWS:
+            break
+    if not parts:
+        return {}
+    import pyarrow as pa
+
+    t = pa.concat_tables(parts)
+    frame = t["frame"].to_numpy().astype(np.int64)
+    laser = laser_codes_of(t["laser"])
+    axis = t["axis"].to_numpy().astype(np.int64) if "axis" in cols else np.zeros(t.num_rows, np.int64)
+    trace = np.where(axis == 1, t["v"].to_numpy(), t["u"].to_numpy())
+    xyz = np.stack([t[c].to_numpy() for c in ("x", "y", "z")], 1)
+    out = {}
+    for name, code in LASER_CODES.items():
+        m = np.flatnonzero(laser == code)
+        if m.size < 3:
+            continue
+        o = m[np.lexsort((trace[m], axis[m], frame[m]))]
+        step = np.diff(trace[o])
+        same = (np.diff(frame[o]) == 0) & (np.diff(axis[o]) == 0) & (np.abs(step - 1.0) < 0.5)
+        if same.sum() >= 10:
+            d = np.linalg.norm(np.diff(xyz[o], axis=0)[same], axis=1) / np.abs(step[same])
+            out[name] = float(np.median(d))
+    return out
+
+
 def _speckle_limit(centre: dict, truth: dict, points: Path, smooth_px: int | None = None,
                    centrelines: Path | None = None) -> dict[str, Any] | None:
     """Per laser: the speckle bound on one profile's centre (px, :mod:`crossline.report.speckle`,
@@ -152,6 +200,7 @@ def _speckle_limit(centre: dict, truth: dict, points: Path, smooth_px: int | Non
     """
     from crossline.io.columns import LASER_CODES, read_columns
     from crossline.report import speckle as sp
+    from crossline.scan.centreline import half_amplitude_columns
 
     sensor, cam = truth.get("sensor") or {}, truth.get("camera") or {}
     pitch, fno = sensor.get("pixel_pitch_um"), sensor.get("f_number")
@@ -171,6 +220,11 @@ def _speckle_limit(centre: dict, truth: dict, points: Path, smooth_px: int | Non
             keys, first = np.unique(key[z["laser"] == c], return_index=True)
             found[n] = (keys, axis[z["laser"] == c][first])
     profiles = _sensor_profiles(centrelines, sensor, found) or {}
+    try:
+        spacing = stripe_spacing_mm(points)
+    except Exception:  # pyarrow raises several types for broken files
+        spacing = {}
+    ripple = half_amplitude_columns(int(smooth_px)) if smooth_px else float("inf")
     fx = float(cam["K"][0][0])
     out: dict[str, Any] = {}
     for name, ce in centre.items():
@@ -191,6 +245,11 @@ def _speckle_limit(centre: dict, truth: dict, points: Path, smooth_px: int | Non
                "contrast": float(las["speckle_contrast"]),
                "wavelength_nm": float(las["wavelength_nm"]), "f_number": float(fno),
                "pixel_um": float(pitch), "magnification": m}
+        if name in spacing:
+            # the lateral resolution the smoothing leaves along the stripe: the points' spacing
+            # and the ripple it passes at half amplitude
+            row.update({"spacing_mm": spacing[name],
+                        "half_amplitude_mm": spacing[name] * ripple if np.isfinite(ripple) else None})
         pr = profiles.get(name)
         if pr is not None:
             # one profile's bound, along it; across the line (as the achieved sigma) it is
