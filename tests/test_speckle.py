@@ -247,3 +247,23 @@ def test_steep_stripe_bound_is_its_column_profiles(tmp_path):
     assert got[0]["cosine"] == pytest.approx(np.full(got[0]["cosine"].size, math.cos(t)), rel=1e-6)
     assert got[1]["cosine"] == pytest.approx(np.full(got[1]["cosine"].size, math.sin(t)), rel=1e-6)
     assert np.median(got[0]["sigma_px"]) == pytest.approx(sigma / math.cos(t), rel=1e-3)
+
+
+def test_stripe_spacing_along_column_and_row_profiled_stripes(tmp_path):
+    """The lateral resolution's spacing: laser A column-profiled, 0.1 mm per column with a
+    two-column gap (not a step of one profile); laser B row-profiled, 0.2 mm per row."""
+    import pandas as pd
+
+    from crossline.report.scan_truth import stripe_spacing_mm
+
+    u = np.r_[np.arange(20), np.arange(22, 40)].astype(np.float64)
+    a = pd.DataFrame({"frame": 3, "laser": "A", "u": u, "v": 100.0 + 0.3 * u,
+                      "x": 0.1 * u, "y": 0.03 * u, "z": 0.0, "axis": np.uint8(0)})
+    r = np.arange(30, dtype=np.float64)
+    b = pd.DataFrame({"frame": 3, "laser": "B", "u": 50.0 + 0.1 * r, "v": r,
+                      "x": 0.0, "y": 0.2 * r, "z": 0.0, "axis": np.uint8(1)})
+    path = tmp_path / "points.parquet"
+    pd.concat([a, b]).to_parquet(path)
+    got = stripe_spacing_mm(path)
+    assert got["A"] == pytest.approx(math.hypot(0.1, 0.03), rel=1e-9)
+    assert got["B"] == pytest.approx(0.2, rel=1e-9)
