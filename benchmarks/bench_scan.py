@@ -545,8 +545,9 @@ def throughput(capture: Path, cal: tuple[Path, Path, Path], work: Path, rounds: 
     """
     import imagecodecs
 
-    from crossline.scan.frames import map_frames, read_frame
+    from crossline.scan.frames import keep_freed_memory, map_frames, read_frame
 
+    keep_freed_memory()  # the stages' heap, so that decode only runs as they decode
     scan = _scan_of(capture)
     cap = open_capture(capture)
     sc = cap.scans[scan]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 import cv2
 import numpy as np
 import pytest
@@ -77,3 +79,32 @@ def test_map_frames_mixes_formats_and_reuses_no_buffer_it_returned(tmp_path):
         assert [i for i, _ in got] == list(range(6))
         for (_, im), f in zip(got, frames, strict=True):
             np.testing.assert_array_equal(im, f.T)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+def test_keep_freed_memory_stops_frame_sized_page_faults():
+    """Three frame-sized arrays (a 2248 x 840 frame in float64) made and freed 40 times, as a
+    frame's work does: with glibc's defaults the freed heap top exceeds its trim threshold and
+    is given back, so the pages fault in again every time; with the heap keeping freed blocks
+    they fault in once. Each in a fresh interpreter, the setting being for the whole process."""
+    import subprocess
+
+    code = (
+        "import resource, sys, numpy as np\n"
+        "from crossline.scan.frames import keep_freed_memory\n"
+        "ok = keep_freed_memory() if sys.argv[1] == 'keep' else True\n"
+        "n = 2248 * 840\n"
+        "a = [np.ones(n) for _ in range(3)]; del a\n"  # the first ones fault either way
+        "f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt\n"
+        "for _ in range(40):\n"
+        "    a = [np.ones(n) for _ in range(3)]; sum(x.sum() for x in a); del a\n"
+        "print(int(ok), resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0)\n")
+    got = {}
+    for mode in ("default", "keep"):
+        out = subprocess.run([sys.executable, "-c", code, mode], capture_output=True, text=True,
+                             check=True).stdout.split()
+        assert out[0] == "1"
+        got[mode] = int(out[1])
+    pages = 3 * 2248 * 840 * 8 // 4096  # the three arrays' 4 KiB pages
+    assert got["default"] > 2 * pages  # faulted in again, frame after frame
+    assert got["keep"] < pages // 10  # kept

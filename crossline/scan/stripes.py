@@ -84,7 +84,7 @@ import pyarrow.parquet as pq
 
 from crossline.errors import CrosslineError, StageError
 from crossline.io.atomic import atomic_path
-from crossline.scan.frames import map_frames
+from crossline.scan.frames import keep_freed_memory, map_frames
 from crossline.scan.off_frames import OFF_MODES, OffFrames, read_order
 from crossline.scan.stripe_channel import _data_range, scan_channel
 from crossline.scan.stripe_frame import EXTRACTORS, _rows_of, any_angle, extract, with_local_background
@@ -313,6 +313,7 @@ def run_extract_stripes(
         counts["frames_room_light_subtracted"] = counts["frames_room_light_kept"] = 0
     else:
         order = [(i, True) for i in range(lo, hi)]
+    keep_freed_memory()  # every frame's arrays reuse the last frame's pages
     t0 = time.perf_counter()
     noise: list[tuple[int, float, float]] = []
     levels: list[tuple[int, float, float, float, float]] = []

@@ -38,6 +38,7 @@ from crossline.scan.centreline import (
     trace_space,
 )
 from crossline.scan.cross_order import CrossOrder
+from crossline.scan.frames import keep_freed_memory
 from crossline.scan.labels import Disambiguator, check_pattern, reference_gap
 from crossline.scan.sheet_curvature import (
     FWHM,
@@ -258,6 +259,7 @@ def run_triangulate(
     if smeta.get("scan") != scan or smeta.get("frame_range") != [0, len(sc.frames)]:
         raise StageError(f"{stripes}: holds scan {smeta.get('scan')!r} frames {smeta.get('frame_range')}, "
                          f"expected all {len(sc.frames)} frames of scan {scan!r}")
+    keep_freed_memory()  # each frame's (and row group's) arrays reuse the last one's pages
     pos_of = {int(f): i for i, f in enumerate(sc.frames)}
     by_number = np.argsort(sc.frames, kind="stable")
     sorted_frames = sc.frames[by_number]
