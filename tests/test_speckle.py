@@ -116,6 +116,10 @@ def test_stripe_bound_without_speckle_is_the_sensor_bound():
     assert one == pytest.approx(sensor_bound_px(peak, sigma, 20.0, 4.0, 0.01), rel=1e-4)
     assert one[0] == pytest.approx(sensor_bound_px(peak[0], sigma[0], 20.0, 4.0, 0.01), rel=1e-9)
     assert smooth == pytest.approx(one * smoothing_gain(7), rel=1e-10)
+    # a steep line's column cut, 16 and 40 px wide: taken at 6 px and grown as sqrt(sigma)
+    for wide in (16.0, 40.0):
+        got, _ = stripe_bound_px(2000.0, wide, 20.0, 4.0, contrast=0.0, grain=0.7)
+        assert got == pytest.approx(sensor_bound_px(2000.0, wide, 20.0, 4.0), rel=3e-3)
     # speckle only adds: more contrast, a larger bound
     lo, _ = stripe_bound_px(peak, sigma, 20.0, 4.0, contrast=0.05, grain=0.7)
     hi, _ = stripe_bound_px(peak, sigma, 20.0, 4.0, contrast=0.2, grain=0.7)

@@ -54,6 +54,7 @@ CHUNK = 4096  # profiles per block of the sensor bound, at most
 BUDGET = 2_000_000  # values per block (profiles x PHASES x pixels), ~16 MB an array
 MATRIX_BUDGET = 4_000_000  # values per block of covariance matrices (stripe bound), ~32 MB
 WIDE = 2.0  # px: profiles at least this wide are averaged over 2 phases of their centre
+WIDEST = 6.0  # px: wider profiles are taken at this width, their bound grown as sqrt(sigma)
 GRAIN_LAMBDA_N = 0.41  # the image grain's sigma (the field's Gaussian) per lambda x N (1 + m)
 
 
@@ -174,6 +175,12 @@ def stripe_bound_px(peak_e, sigma_px, background_e=0.0, read_noise_e=0.0, prnu=0
     one, smooth = np.full(a.size, np.nan), np.full(a.size, np.nan)
     ok = (a >= 0) & (s > 0) & (b >= 0) & (r >= 0) & (q >= 0) & (h > 0)
     ok &= np.isfinite(a + s + b + r + q + h)
+    # a profile many pixels wide (a steep line's column cut) is taken at WIDEST: at a fixed
+    # peak, speckle, shot and read noise all give a variance that grows as its width, so the
+    # bound grows as sqrt(sigma) from there (0.2 % off between 4 and 8 px), and the covariance
+    # matrices stay small
+    widen = np.sqrt(np.maximum(s, WIDEST) / WIDEST)
+    s = np.minimum(s, WIDEST)
     one[(a == 0) & ok], smooth[(a == 0) & ok] = np.inf, np.inf
     w = None
     if smooth_px and int(smooth_px) >= 3:
@@ -218,6 +225,7 @@ def stripe_bound_px(peak_e, sigma_px, background_e=0.0, read_noise_e=0.0, prnu=0
             along = np.einsum("i,nij,j->n", w, field_correlation(
                 lags[None] * h[j, None, None], grain, contrast), w)
             smooth[j] = np.sqrt((v_spk * along[:, None] + v_sen * float(w @ w)).mean(axis=1))
+    one, smooth = one * widen, smooth * widen
     if not shape:
         return float(one[0]), (float(smooth[0]) if w is not None else None)
     return one.reshape(shape), (smooth.reshape(shape) if w is not None else None)
