@@ -255,7 +255,8 @@ def test_steep_stripe_bound_is_its_column_profiles(tmp_path):
 
 def test_stripe_spacing_along_column_and_row_profiled_stripes(tmp_path):
     """The lateral resolution's spacing: laser A column-profiled, 0.1 mm per column with a
-    two-column gap (not a step of one profile); laser B row-profiled, 0.2 mm per row."""
+    two-column gap (not a step of one profile) and a second piece in the same columns; laser
+    B row-profiled, 0.2 mm per row."""
     import pandas as pd
 
     from crossline.report.scan_truth import stripe_spacing_mm
@@ -266,8 +267,11 @@ def test_stripe_spacing_along_column_and_row_profiled_stripes(tmp_path):
     r = np.arange(30, dtype=np.float64)
     b = pd.DataFrame({"frame": 3, "laser": "B", "u": 50.0 + 0.1 * r, "v": r,
                       "x": 0.0, "y": 0.2 * r, "z": 0.0, "axis": np.uint8(1)})
+    # a second piece of A in the same frame and columns, 40 px below and 50 mm away (the
+    # table behind a ball): a piece's neighbour is its own, not the other piece's
+    a2 = a.assign(v=a["v"] + 40.0, z=50.0, x=0.1 * u + 0.001)
     path = tmp_path / "points.parquet"
-    pd.concat([a, b]).to_parquet(path)
+    pd.concat([a, a2, b]).sample(frac=1.0, random_state=1).to_parquet(path)
     got = stripe_spacing_mm(path)
     assert got["A"] == pytest.approx(math.hypot(0.1, 0.03), rel=1e-9)
     assert got["B"] == pytest.approx(0.2, rel=1e-9)

@@ -135,12 +135,14 @@ def _line_cosines(frame: np.ndarray, u: np.ndarray,
 
 
 SPACING_ROWS = 2_000_000  # points read for the spacing along the stripes, at most
+NEXT_PX = 6.0  # px across: the farthest a stripe's point one profile on may lie (a steep cut)
+CROSS_SPAN = 1e5  # px: more than any frame's extent (a key for sorting by profile, then across)
 
 
 def stripe_spacing_mm(points: Path) -> dict[str, float]:
     """Per laser: the median distance (mm) between a stripe's points one profile apart (the
-    next column, or row for a row-profiled stripe) in the same frame, from the first
-    ``SPACING_ROWS`` points of the points file."""
+    next column, or row for a row-profiled stripe) in the same frame, the nearest across of
+    the stripe pieces there, from the first ``SPACING_ROWS`` points of the points file."""
     import pyarrow.parquet as pq
 
     from crossline.io.columns import LASER_CODES, laser_codes_of
@@ -167,18 +169,32 @@ def stripe_spacing_mm(points: Path) -> dict[str, float]:
     laser = laser_codes_of(t["laser"])
     axis = t["axis"].to_numpy().astype(np.int64) if "axis" in cols else np.zeros(t.num_rows, np.int64)
     trace = np.where(axis == 1, t["v"].to_numpy(), t["u"].to_numpy())
+    cross = np.where(axis == 1, t["u"].to_numpy(), t["v"].to_numpy())
     xyz = np.stack([t[c].to_numpy() for c in ("x", "y", "z")], 1)
     out = {}
     for name, code in LASER_CODES.items():
-        m = np.flatnonzero(laser == code)
+        m = np.flatnonzero((laser == code) & np.isfinite(trace) & np.isfinite(cross))
         if m.size < 3:
             continue
-        o = m[np.lexsort((trace[m], axis[m], frame[m]))]
-        step = np.diff(trace[o])
-        same = (np.diff(frame[o]) == 0) & (np.diff(axis[o]) == 0) & (np.abs(step - 1.0) < 0.5)
-        if same.sum() >= 10:
-            d = np.linalg.norm(np.diff(xyz[o], axis=0)[same], axis=1) / np.abs(step[same])
-            out[name] = float(np.median(d))
+        # each point's neighbour one profile on, in the same frame and profile axis: of the
+        # points there (one per stripe piece), the one nearest across, if within NEXT_PX
+        span = int(np.rint(trace[m]).max()) + 2
+        key = (frame[m] * 2 + axis[m]) * span + np.rint(trace[m]).astype(np.int64)
+        o = np.lexsort((cross[m], key))
+        k, c, idx = key[o], cross[m][o], m[o]
+        comp = k.astype(np.float64) * CROSS_SPAN + c
+        q = (k + 1).astype(np.float64) * CROSS_SPAN + c
+        at = np.searchsorted(comp, q)
+        best = np.full(k.size, -1)
+        gap = np.full(k.size, np.inf)
+        for j in (at - 1, at):
+            jj = j.clip(0, k.size - 1)
+            d = np.abs(c[jj] - c)
+            take = (j >= 0) & (j < k.size) & (k[jj] == k + 1) & (d < gap)
+            best, gap = np.where(take, jj, best), np.where(take, d, gap)
+        ok = gap <= NEXT_PX
+        if ok.sum() >= 10:
+            out[name] = float(np.median(np.linalg.norm(xyz[idx[ok]] - xyz[idx[best[ok]]], axis=1)))
     return out
 
 
