@@ -274,8 +274,8 @@ def _speckle_limit(centre: dict, truth: dict, points: Path, smooth_px: int | Non
                                                      pr["background_e"], pr["read_noise_e"],
                                                      pr["prnu"])
             sb = _mixture_sigma(each)
-            # speckle and sensor together, for each profile's width (a fixed sample: the
-            # covariance matrices cost a thousand times the sensor's sums)
+            # speckle and sensor together, for each profile's width (a fixed sample: a
+            # covariance matrix per profile costs far more than the sensor's sums)
             k = np.arange(each.size)
             if k.size > STRIPE_ROWS:
                 k = np.sort(np.random.default_rng(0).choice(k.size, STRIPE_ROWS, replace=False))

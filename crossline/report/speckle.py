@@ -177,8 +177,8 @@ def stripe_bound_px(peak_e, sigma_px, background_e=0.0, read_noise_e=0.0, prnu=0
     ok &= np.isfinite(a + s + b + r + q + h)
     # a profile many pixels wide (a steep line's column cut) is taken at WIDEST: at a fixed
     # peak, speckle, shot and read noise all give a variance that grows as its width, so the
-    # bound grows as sqrt(sigma) from there (0.2 % off between 4 and 8 px), and the covariance
-    # matrices stay small
+    # bound grows as sqrt(sigma) from there (tested against the sensor's bound at 16 and 40
+    # px), and the covariance matrices stay small
     widen = np.sqrt(np.maximum(s, WIDEST) / WIDEST)
     s = np.minimum(s, WIDEST)
     one[(a == 0) & ok], smooth[(a == 0) & ok] = np.inf, np.inf
@@ -192,8 +192,8 @@ def stripe_bound_px(peak_e, sigma_px, background_e=0.0, read_noise_e=0.0, prnu=0
     k = 0
     while k < idx.size:
         j = idx[k : k + CHUNK]
-        # beyond 6 sigma a pixel holds 1e-8 of the profile's slope; a profile wider than the
-        # WIDE pixels hardly changes with its centre's phase, so fewer phases are averaged
+        # beyond 6 sigma the profile's slope is below 1e-7 of its peak's; a profile WIDE pixels
+        # or wider hardly changes with its centre's phase, so fewer phases are averaged
         half = int(np.ceil(6.0 * s[j[-1]])) + 2
         m = 2 * half + 1
         nph = PHASES if s[j[0]] < WIDE else 2

@@ -387,7 +387,7 @@ def keep_freed_memory() -> bool:
     A scan stage allocates and frees arrays of a frame's size every frame. glibc serves a block
     above its mmap threshold with a fresh mapping and unmaps it when freed, and gives back heap
     tops above its trim threshold, so the next frame faults the same pages in again and the
-    kernel zeroes them: on a 2248 x 840 frame most of the stage's system time. A fixed mmap
+    kernel zeroes them, every frame (docs/method.md gives the figures). A fixed mmap
     threshold (glibc's largest) and a large trim threshold keep the blocks; the process's peak
     memory is what it was, only not returned until it ends. Returns whether both were set
     (False where the C library has no ``mallopt``: nothing is changed).
