@@ -45,6 +45,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 from crossline.camera import Camera  # noqa: E402
 from crossline.io.capture import open_capture  # noqa: E402
 from crossline.laser import LaserPlanes  # noqa: E402
+from crossline.report.scan_truth import stripe_spacing_mm  # noqa: E402
 from crossline.scan.centreline import half_amplitude_columns  # noqa: E402
 from crossline.scan.frames import decode_png, fast_decoder_available  # noqa: E402
 from crossline.scan.stripes import EXTRACTORS, gaussian, grey_centre, run_extract_stripes, steger  # noqa: E402
@@ -147,14 +148,6 @@ def true_calibration(capture: Path, dest: Path) -> tuple[Path, Path, Path]:
 
 
 # ----------------------------------------------------------------------------- accuracy
-
-
-def column_spacing_mm(points: pd.DataFrame) -> float:
-    """Median distance between the points of neighbouring columns along one stripe, mm."""
-    p = points.sort_values(["frame", "laser", "u"])
-    g = p.groupby(["frame", "laser"])
-    step = np.hypot(np.hypot(g["x_cam"].diff(), g["y_cam"].diff()), g["z_cam"].diff())
-    return float(np.nanmedian(step[(g["u"].diff().round() == 1).to_numpy()]))
 
 
 def truth_table(capture: Path) -> tuple[dict, pd.DataFrame]:
@@ -841,7 +834,8 @@ def main(argv=None) -> int:
                 r[f"centres_smooth{win}"] = score_centres(pts, tl)
                 r[f"surface_smooth{win}"] = score_surface(cap, pts, T_tool_cam)
             # the lateral resolution the smoothing leaves, in mm on this plate
-            r["column_spacing_mm"] = column_spacing_mm(pts)
+            # (the lasers' median spacings, crossline.report.scan_truth.stripe_spacing_mm, averaged)
+            r["column_spacing_mm"] = float(np.mean(list(stripe_spacing_mm(ps).values())))
             # the paper's rule (latest frame, nearest wins) on the same centres, for comparison
             meta0 = run_triangulate(cap, SCAN, st, *cal, work / f"{preset}-{ex}-paper.parquet",
                                     ambiguity_px=0.0, predict=False)
