@@ -46,8 +46,8 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
+from crossline.optics import grain_px as optics_grain_px  # noqa: E402
 from crossline.report.speckle import centre_bound_px, stripe_bound_px  # noqa: E402
-from crossline.report.speckle import grain_px as optics_grain_px  # noqa: E402
 from crossline.scan.stripe_frame import extract  # noqa: E402
 from crossline.sim.optics import speckle_field  # noqa: E402
 

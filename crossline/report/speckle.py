@@ -46,6 +46,8 @@ import math
 import numpy as np
 from scipy.special import ndtr
 
+from crossline.optics import grain_px
+
 __all__ = ["centre_bound_px", "field_correlation", "grain_px", "sensor_bound_px", "smoothing_gain",
            "stripe_bound_px"]
 
@@ -55,7 +57,6 @@ BUDGET = 2_000_000  # values per block (profiles x PHASES x pixels), ~16 MB an a
 MATRIX_BUDGET = 4_000_000  # values per block of covariance matrices (stripe bound), ~32 MB
 WIDE = 2.0  # px: profiles at least this wide are averaged over 2 phases of their centre
 WIDEST = 6.0  # px: wider profiles are taken at this width, their bound grown as sqrt(sigma)
-GRAIN_LAMBDA_N = 0.41  # the image grain's sigma (the field's Gaussian) per lambda x N (1 + m)
 
 
 def centre_bound_px(contrast: float, wavelength_nm: float, f_number: float, pixel_um: float,
@@ -120,13 +121,6 @@ def sensor_bound_px(peak_e, sigma_px, background_e=0.0, read_noise_e=0.0, prnu=0
         fisher = np.divide(dmu * dmu, var, out=np.zeros_like(var), where=var > 0).sum(axis=2)
         out[j] = np.sqrt((1.0 / fisher).mean(axis=1))
     return out.reshape(shape) if shape else float(out[0])
-
-
-def grain_px(wavelength_nm: float, f_number: float, pixel_um: float,
-             magnification: float = 0.0) -> float:
-    """The image's speckle grain (px): sigma of the Gaussian that correlates the field, as the
-    renderer draws it (``crossline.sim.optics.speckle_field``) from the optics."""
-    return GRAIN_LAMBDA_N * wavelength_nm * 1e-3 * f_number * (1.0 + magnification) / pixel_um
 
 
 def field_correlation(lag_px, grain: float, contrast: float) -> np.ndarray:

@@ -51,7 +51,7 @@ from crossline.board import Board
 from crossline.camera import Camera
 from crossline.errors import CrosslineError
 from crossline.geometry import make_transform, rotvec_to_matrix
-from crossline.report.speckle import grain_px
+from crossline.optics import grain_px
 from crossline.sim.presets import (
     ArmNoiseSpec,
     BoardSpec,
