@@ -408,3 +408,32 @@ def test_deviation_cloud_is_the_compared_points_coloured_as_on_the_page(tmp_path
     assert np.array_equal(pc.point.colors.numpy(), want.astype(np.uint8))
     assert write_deviation_clouds(ReportData({"scans": {}}, {"scans": {}}), tmp_path / "none") == []
     assert (tmp_path / "none").is_dir()
+
+
+def test_table_cells_wrap_inside_their_column():
+    """A note longer than its column wraps onto more lines of its row instead of running
+    under the next column or off the page; short cells stay on one line."""
+    import matplotlib
+
+    from crossline.report.pages_common import LEFT, RC, RIGHT, Page
+
+    note = "+1.42 (U 0.0085 mm; NOT covered: U misses a contributor, far longer than its column)"
+    xs = [LEFT, LEFT + 0.14, LEFT + 0.62]
+    with matplotlib.rc_context(RC):
+        p = Page({"capture": {"name": "c"}}, "s")
+        y0 = p.y
+        p.table(["Scan", "Figure", "Error"], [["ball", "error / U (k = 2), E_n", note],
+                                              ["gauge", "mean height", "-0.0027 mm"]], xs)
+        fig = p.fig
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+        r = FigureCanvasAgg(fig).get_renderer()
+        texts = [t for t in fig.texts if t.get_position()[0] == xs[2] and t.get_position()[1] <= y0]
+        parts = [t.get_text() for t in texts]
+        # the header, the note on several lines, the short cell on one
+        assert parts[0] == "Error" and parts[-1] == "-0.0027 mm" and len(parts) >= 4
+        assert " ".join(parts[1:-1]) == note
+        right = max(t.get_window_extent(r).x1 for t in texts) / fig.bbox.width
+        assert right <= RIGHT + 1e-3
+        ys = [t.get_position()[1] for t in texts]
+        assert np.all(np.diff(ys) < 0)  # one line below the other, in order

@@ -8,13 +8,16 @@ from __future__ import annotations
 
 import json
 import math
+import textwrap
 from typing import Any
 
 import matplotlib
 
 matplotlib.use("Agg")
 
+import matplotlib.font_manager
 import matplotlib.lines
+import matplotlib.textpath
 import numpy as np
 from matplotlib.figure import Figure
 
@@ -150,8 +153,6 @@ class Page:
     def text(self, s: str, *, size: float = 8.5, x: float = LEFT, dy: float | None = None,
              **kw: Any) -> None:
         """Text at the cursor, wrapped to the page width; the cursor moves below it."""
-        import textwrap
-
         mono = kw.get("family") == MONO
         width = int((RIGHT - x) * A4[0] * 72 / (size * (0.61 if mono else 0.55)))
         for line in textwrap.wrap(s, width=max(20, width)) or [""]:
@@ -195,13 +196,35 @@ class Page:
         self.y -= lh
         self.fig.add_artist(matplotlib.lines.Line2D([LEFT, RIGHT], [self.y + 0.3 * lh] * 2,
                                                     lw=0.5, color="black"))
+        # a cell wider than its column wraps onto more lines of its row (a long note would
+        # otherwise run off the page or under the next column)
+        room = [((xs[i + 1] if i + 1 < len(xs) else RIGHT) - xs[i] - 0.008) * A4[0] * 72
+                for i in range(len(columns))]  # points
+        prop = matplotlib.font_manager.FontProperties(family=family, size=size)
+
+        def fits(s: str, i: int) -> bool:
+            return matplotlib.textpath.TextPath((0, 0), s, prop=prop).get_extents().width <= room[i]
+
+        def wrapped(cell: str, i: int) -> list[str]:
+            if aligns[i] != "left" or len(cell) * size * 0.45 <= room[i] or fits(cell, i):
+                return [cell]  # the first test spares measuring cells that surely fit
+            lines: list[str] = []
+            for word in cell.split():  # greedy, each line measured; a word too long stays whole
+                if lines and fits(f"{lines[-1]} {word}", i):
+                    lines[-1] += f" {word}"
+                else:
+                    lines.append(word)
+            return lines or [""]
+
         for r, row in enumerate(rows):
-            for i, cell in enumerate(row):
+            lines = [wrapped(cell, i) for i, cell in enumerate(row)]
+            for i, cell in enumerate(lines):
                 col = colours[r][i] if colours and colours[r][i] else "black"
-                self.fig.text(xpos(i), self.y, cell, fontsize=size, va="top", ha=aligns[i],
-                              color=col, family=family,
-                              weight="bold" if col in COLOURS.values() else "normal")
-            self.y -= lh
+                for k, line in enumerate(cell):
+                    self.fig.text(xpos(i), self.y - k * lh, line, fontsize=size, va="top",
+                                  ha=aligns[i], color=col, family=family,
+                                  weight="bold" if col in COLOURS.values() else "normal")
+            self.y -= lh * max(len(x) for x in lines)
         self.fig.add_artist(matplotlib.lines.Line2D([LEFT, RIGHT], [self.y + 0.3 * lh] * 2,
                                                     lw=0.5, color="black"))
         self.gap(0.06)

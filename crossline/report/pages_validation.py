@@ -356,7 +356,7 @@ def page_uncertainty(m: dict[str, Any]) -> Figure | None:
         p.table(["Figure", "Scan", "Measured ± U", "Tolerance", "Decision"],
                 [[r["figure"], r["scan"] or "", fmt_row_value(r), fmt_tolerance(r), r["decision"]]
                  for r in decided],
-                [LEFT, LEFT + 0.33, LEFT + 0.41, LEFT + 0.63, LEFT + 0.78], size=7.5,
+                [LEFT, LEFT + 0.28, LEFT + 0.34, LEFT + 0.49, LEFT + 0.61], size=7.5,
                 aligns=["left", "left", "right", "right", "left"])
     p.gap(0.1)
     p.text("What U covers, and what it does not", size=10, weight="bold")
