@@ -249,7 +249,8 @@ class SurfaceShape:
         sw = wt.sum(1)
         mean = np.einsum("bk,bki->bi", wt, Q) / np.maximum(sw, 1e-300)[:, None]
         D = Q - mean[:, None, :]
-        C = np.einsum("bk,bki,bkj->bij", wt, D, D) / np.maximum(sw, 1e-300)[:, None, None]
+        # batched matrix products (BLAS), not a three-operand einsum
+        C = np.matmul((D * wt[:, :, None]).transpose(0, 2, 1), D) / np.maximum(sw, 1e-300)[:, None, None]
         ev, V = np.linalg.eigh(C)  # ascending: normal = smallest
         n0, t2, t1 = V[:, :, 0], V[:, :, 1], V[:, :, 2]
         R = Q - q[:, None, :]
@@ -304,13 +305,16 @@ def surface_shape(points: np.ndarray, *, cell_mm: float = CELL_MM, radius_mm: fl
 
 def _weighted_lstsq(A: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Per row b: argmin_c sum_k w (A c - y)^2, for A (B, K, P); NaN where singular."""
-    N = np.einsum("bk,bkp,bkq->bpq", w, A, A)
-    r = np.einsum("bk,bkp,bk->bp", w, A, y)
+    Aw = (A * w[:, :, None]).transpose(0, 2, 1)
+    N = np.matmul(Aw, A)
+    r = np.matmul(Aw, y[:, :, None])[..., 0]
     P = A.shape[-1]
     scale = np.sqrt(np.abs(np.einsum("bpp->bp", N))) + 1e-300
     Ns = N / scale[:, :, None] / scale[:, None, :]
     out = np.full((len(A), P), np.nan)
-    good = np.linalg.cond(Ns) < 1e10
+    ev = np.abs(np.linalg.eigvalsh(Ns))  # Ns is symmetric: its condition from its eigenvalues
+    with np.errstate(divide="ignore", invalid="ignore"):
+        good = ev.max(1) < 1e10 * ev.min(1)
     if good.any():
         out[good] = np.linalg.solve(Ns[good], (r / scale)[good][..., None])[..., 0] / scale[good]
     return out
