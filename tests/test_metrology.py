@@ -600,12 +600,20 @@ def test_gauge_plate_normal_from_short_crossing_stripes():
     assert g.figures()["mean_mm"] == pytest.approx(10.0, abs=3e-4)
 
 
-def test_gauge_referenced_needs_plate_in_the_same_frames():
+def test_gauge_falls_back_to_the_plate_plane_where_no_frame_sees_both_faces():
+    """Top and plate never in one frame (a block as tall as the measuring range): the heights
+    are the paper's, to the plate plane, and the result says why they are not per frame."""
     pts, _ = gauge_scene(seed=12)
     on_top = pts[:, 2] > 10
-    frame = np.where(on_top, 1, 2)  # top and plate never in one frame
-    with pytest.raises(ValueError, match="cannot reference per frame"):
-        mt.measure_gauge_block(pts, 20.0, frame=frame)
+    frame = np.where(on_top, 1, 2)
+    g = mt.measure_gauge_block(pts, 20.0, frame=frame)
+    plane = mt.measure_gauge_block(pts, 20.0)
+    f = g.figures()
+    assert g.reference == "plane" and g.frame_offsets is None
+    assert "not per frame" in f["reference_note"] and "only 0 top points" in f["reference_note"]
+    assert f["mean_mm"] == plane.figures()["mean_mm"] and f["n"] == plane.figures()["n"]
+    assert f["mean_mm"] == pytest.approx(20.0, abs=5e-4)
+    assert "reference_note" not in plane.figures()
 
 
 def test_label_errors_against_true_lines():

@@ -151,6 +151,7 @@ class GaugeResult:
     # (N,) the plate points the plate's plane was fitted to (plate_mask less its trimmed
     # outliers); None: all of plate_mask
     plate_plane_mask: np.ndarray | None = None
+    reference_note: str | None = None  # why the heights are not referenced per frame
 
     def figures(self) -> dict[str, Any]:
         """Mean, std, n, error of the mean against nominal, and the extra figures."""
@@ -178,6 +179,7 @@ class GaugeResult:
             "plate_d_mm": self.plate_d,
             "edge_margin_mm": self.edge_margin_mm,
             "reference": self.reference,
+            **({"reference_note": self.reference_note} if self.reference_note else {}),
             # "frames": the plate's normal from each frame's stripes; "plane": the plane fit's
             "plate_normal_from": self.normal_from,
             **(
@@ -343,7 +345,9 @@ def measure_gauge_block(
     is subtracted from its top points' heights (frames with fewer than ``min_frame_points``
     plate points are left out). The stripe crosses plate and top face in one exposure, so the
     arm's pose error of that frame, common to both, cancels: what a line profiler does for a
-    step height. The paper's plane-referenced heights are kept in ``heights_plane``.
+    step height. The paper's plane-referenced heights are kept in ``heights_plane``. Where
+    too few top points lie in frames that see the plate too, the heights are the paper's, to
+    the plate plane, and ``reference_note`` says why.
     """
     p = np.asarray(points, dtype=np.float64)
     if len(p) < 2 * MIN_POINTS:
@@ -425,7 +429,7 @@ def measure_gauge_block(
     if float(np.median(p[top_mask] @ plate_n + plate_d)) < 0:
         plate_n, plate_d = -plate_n, -plate_d
     heights = plane_distance(p[top_mask], plate_n, plate_d)
-    heights_plane = frame_offsets = None
+    heights_plane = frame_offsets = reference_note = None
     reference, normal_from = "plane", "plane"
     if frame is not None:
         frame = np.asarray(frame)
@@ -439,10 +443,14 @@ def measure_gauge_block(
             k = np.clip(np.searchsorted(ufr_used, frame[top_idx]), 0, ufr_used.size - 1)
             seen = ufr_used[k] == frame[top_idx]
         if seen.sum() < MIN_POINTS:
-            raise ValueError(
-                f"measure_gauge_block: only {int(seen.sum())} top points lie in frames that also "
-                f"see at least {min_frame_points} plate points; cannot reference per frame"
-            )
+            # no frame sees both faces (a tall block for the measuring range, a sweep across
+            # one face at a time): the paper's heights to the plate plane, saying why
+            reference_note = (
+                f"heights to the plate plane, not per frame: only {int(seen.sum())} top points "
+                f"lie in frames that also see at least {min_frame_points} plate points, so the "
+                f"arm's pose error between frames enters the heights")
+            frame = None
+    if frame is not None:
         top_mask = np.zeros(len(p), dtype=bool)
         top_mask[top_idx[seen]] = True
         heights_plane = heights[seen]
@@ -497,6 +505,7 @@ def measure_gauge_block(
         frame_offsets=frame_offsets,
         normal_from=normal_from,
         plate_plane_mask=plane_mask,
+        reference_note=reference_note,
     )
 
 

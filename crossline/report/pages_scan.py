@@ -167,6 +167,8 @@ def page_scan(m: dict[str, Any], name: str, plots: dict[str, Any]) -> Figure:
                           f"SEM      {fmt(meas['sem_mm'], 'mm', 5)}",
                           f"n        {fmt(meas['n'])}"])
             ax.legend(loc="upper left")
+            if meas.get("reference_note"):
+                p.text(f"Heights: {meas['reference_note']}.", size=7.5, color=COLOURS["N/A"])
         elif hist["kind"] in ("plane", "freeform"):
             b = hist["band"]
             for x in (-b, b):
