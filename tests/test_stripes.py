@@ -887,3 +887,64 @@ def test_gather_refuses_a_chunk_whose_metadata_is_broken(tmp_path, meta):
     with pytest.raises(StageError, match=r"part0-of-1\.parquet"):
         gather_stripes([path], tmp_path / "out.parquet")
     assert not (tmp_path / "out.parquet").exists()
+
+
+def speckled_line(slope, H=800, W=400, sigma=1.5, peak=150.0, contrast=0.2, noise=2.0, seed=0,
+                  at=(0.5, 0.5)):
+    """A stripe through (W at[0], H at[1]) of ``slope`` rows per column under a speckle field
+    (log-normal, grain 1 px) and read noise, 8-bit."""
+    rng = np.random.default_rng(seed)
+    v, u = np.mgrid[0:H, 0:W].astype(float)
+    d = ((v - H * at[1]) - slope * (u - W * at[0])) / np.sqrt(1 + slope**2)
+    g = cv2.GaussianBlur(rng.standard_normal((H, W)), (0, 0), 1.0)
+    speck = np.exp(contrast / g.std() * g - 0.5 * contrast**2)
+    return peak * speck * np.exp(-0.5 * (d / sigma) ** 2) + rng.normal(0, noise, (H, W))
+
+
+def _traces(c):
+    from crossline.scan.centreline import link_traces, trace_position, trace_space
+
+    tu, tv = trace_space(c["u"], c["v"], c["axis"])
+    prev = link_traces(np.zeros(tu.size, np.int64), np.full(tu.size, "A"), tu, tv)
+    return np.bincount(trace_position(prev, tu, tv)[0])
+
+
+@pytest.mark.parametrize("slope", [3.2, 3.6, 4.0, 4.2, 4.5, -4.0])
+def test_a_stripe_near_the_row_slope_is_one_trace(slope):
+    """About ROW_SLOPE rows per column, a stripe's column runs are about ROW_SLOPE times its row
+    runs, and speckle moves that ratio about it: taken centre by centre, the stripe alternated
+    between row and column centres, and its traces broke into pieces too short to keep (4.2:
+    32 traces, 4.5: 127). A steep stretch is now taken whole: one trace, a centre per row."""
+    from crossline.scan.stripe_frame import ROW_SLOPE, extract
+
+    assert ROW_SLOPE < abs(slope)
+    img = np.clip(np.round(6 + speckled_line(slope)), 0, 255).astype(np.uint8)
+    c = extract(img, "gaussian", threshold=0.10)
+    sizes = _traces(c)
+    assert np.all(c["axis"] == 1) and c["u"].size > 0.95 * img.shape[0]
+    assert sizes.max() > 0.98 * c["u"].size
+
+
+def test_the_dimmer_of_two_crossing_stripes_keeps_its_centres():
+    """Both lasers on, one stripe a quarter as bright as the other: against the brighter one's
+    peak, the stage's min_peak test took the dimmer one's speckle-dark columns for glints and
+    dropped them; each stripe is now held to its own peak (stripe_peaks, by direction)."""
+    from crossline.scan.stripes import _frame_work
+
+    H, W = 600, 900
+    dim = speckled_line(0.1, H, W, peak=2000.0, contrast=0.3, noise=8.0, seed=1)
+    bright = speckled_line(-2.0, H, W, peak=8000.0, contrast=0.3, noise=8.0, seed=2, at=(0.3, 0.5))
+    img = np.clip(np.round(400 + dim + bright), 0, 65535).astype(np.uint16)
+    params = {"threshold": 0.10, "min_width": 2.0, "max_width": 30.0, "fit_pad": 6, "relative_noise": None,
+              "fit_across": True, "min_peak": 0.17}
+    c = _frame_work("gaussian", params, 65535.0)(0, np.ascontiguousarray(img.T))
+    u, v = c["u"], c["v"]
+    on_dim = np.abs((v - H / 2) - 0.1 * (u - W / 2)) < 2.0
+    away = np.abs(u - 0.3 * W) > 40  # off the crossing
+    cols = np.unique(np.round(u[on_dim & away]))
+    assert cols.size > 0.97 * np.sum(np.abs(np.arange(W) - 0.3 * W) > 40)
+    # each stripe's own peak: the dimmer one's a quarter of the brighter one's
+    from crossline.scan.stripe_levels import stripe_peaks
+
+    peaks = stripe_peaks(c["peak"], c["nx"], c["ny"], 1e9)
+    assert np.median(peaks[on_dim & away]) < 0.5 * np.median(peaks[~on_dim])

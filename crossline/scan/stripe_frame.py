@@ -32,7 +32,7 @@ __all__ = [
 ]
 
 EXTRACTORS = ("grey_centre", "gaussian", "steger")
-ROW_SLOPE = 4.0  # stripes steeper than this (|dv/du|, 76 deg) are profiled along the rows
+ROW_SLOPE = 3.0  # stripes steeper than this (|dv/du|, 72 deg) are profiled along the rows
 MIN_STEEP_ROWS = 48  # ... where the steep stretch spans this many rows (not a curve's steep end)
 
 
@@ -73,12 +73,16 @@ def _has_long_run_nb(imT, thr, stride, longest):  # pragma: no cover - compiled
     return False
 
 
-def _long_steep(row: np.ndarray, col: np.ndarray, cand: np.ndarray, shape_T: tuple[int, int]) -> np.ndarray:
-    """Which candidate row centres lie on a steep stretch spanning ``MIN_STEEP_ROWS`` rows or more.
+def _long_steep(row: np.ndarray, col: np.ndarray, cand: np.ndarray, steep: np.ndarray,
+                shape_T: tuple[int, int]) -> np.ndarray:
+    """Which candidate row centres lie on a steep stretch spanning ``MIN_STEEP_ROWS`` rows or
+    more, most of whose centres are ``steep``.
 
-    The candidates' pixels are marked and joined (8-connected; a stripe steeper than
-    ``ROW_SLOPE`` moves less than a pixel per row), and stretches shorter than that are left
-    to the column profiles: the steep ends of a curve (a ball's rim) stay as they were.
+    The candidates' pixels are marked and joined (8-connected, a row of margin), and
+    stretches shorter than that are left to the column profiles: the steep ends of a curve
+    (a ball's rim) stay as they were. A stretch is taken or left whole: a stripe whose slope
+    hovers about ``ROW_SLOPE`` would otherwise alternate between row and column centres, and
+    both traces would break into pieces too short to keep.
     """
     W, H = shape_T
     out = np.zeros(row.size, bool)
@@ -89,9 +93,11 @@ def _long_steep(row: np.ndarray, col: np.ndarray, cand: np.ndarray, shape_T: tup
     mask = np.zeros((H, W), np.uint8)
     mask[rr, cc] = 1
     mask = cv2.dilate(mask, np.ones((3, 1), np.uint8))  # bridge a row whose fit failed
-    _n, lab, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    comp = lab[rr, cc]
+    mostly = 2 * np.bincount(comp, weights=steep[cand], minlength=n) >= np.bincount(comp, minlength=n)
     tall = stats[:, cv2.CC_STAT_HEIGHT] >= min(MIN_STEEP_ROWS, H // 2)
-    out[np.flatnonzero(cand)] = tall[lab[rr, cc]]
+    out[np.flatnonzero(cand)] = (tall & mostly)[comp]
     return out
 
 
@@ -115,10 +121,11 @@ def any_angle(columns_fn, imT: np.ndarray, level: float, max_width: float,
     same layout; ``None``: of ``a``); ``detect`` is that image for the frame. It runs on the frame
     (``imT``, the frame as (width, height)) and, when that finds stripes steeper than
     ``ROW_SLOPE`` rows per column or the frame holds column runs longer than ``ROW_SLOPE``
-    times the typical run (``max_width`` at most), on the transposed frame. Each
-    row centre is kept where the column run through its pixel is more than ``ROW_SLOPE`` times
-    its own, on a steep stretch of ``MIN_STEEP_ROWS`` rows or more (:func:`_long_steep`); the
-    column centres inside the runs of the row centres kept give way to them. Returns the
+    times the typical run (``max_width`` at most), on the transposed frame. The row centres
+    are kept on a steep stretch of ``MIN_STEEP_ROWS`` rows or more where the column run
+    through most of their pixels is more than ``ROW_SLOPE`` times their own (all of the
+    stretch where it is more than half that: :func:`_long_steep`); the column centres inside
+    the runs of the row centres kept give way to them. Returns the
     centre table with ``axis`` (0: profile along the column, ``u`` integer; 1: along the row,
     ``v`` integer), sorted by (u, v).
     """
@@ -141,8 +148,10 @@ def any_angle(columns_fn, imT: np.ndarray, level: float, max_width: float,
     r = columns_fn(imR, None if detect is None else np.ascontiguousarray(cv2.transpose(detect)))
     # the column run through each row centre's pixel
     lc = _run_lengths_nb(src, thr, np.round(r["v"]).astype(np.int64), r["u"].astype(np.int64))
-    keep_r = lc > ROW_SLOPE * r["width"]
-    keep_r &= _long_steep(r["u"], r["v"], keep_r, imT.shape)
+    # steeper than ROW_SLOPE: the rows' profiles; a stretch of the stripe that is mostly so
+    # is taken whole, down to half that slope (a profile within 27 deg of the stripe's normal)
+    keep_r = _long_steep(r["u"], r["v"], lc > 0.5 * ROW_SLOPE * r["width"], lc > ROW_SLOPE * r["width"],
+                         imT.shape)
     if not keep_r.any():
         return c
     # the steep stretches the rows profile are theirs: a column centre whose pixel lies in one

@@ -21,6 +21,7 @@ __all__ = [
     "data_bits_for",
     "frame_levels",
     "full_scale",
+    "stripe_peaks",
 ]
 
 DATA_BITS = (8, 10, 12, 14, 16)  # ADC ranges a camera may write into its images' containers
@@ -28,6 +29,9 @@ NOISE_K = 6.0  # a stripe stands at least this many background-noise sigmas abov
 PEAK_QUANTILE = 0.9  # the stripe's peak: this quantile of the stripe columns' brightest pixels
 MIN_STRIPE_COLUMNS = 3  # fewer columns above the noise floor: the frame holds no stripe
 LEVEL_STEP = 5  # background and noise from every 5th pixel of every 5th column
+ORIENT_BIN_DEG = 5.0  # stripe_peaks: centres binned by their stripe's direction
+ORIENT_WINDOW_DEG = 20.0  # ... and a stripe's peak taken over the directions this close to its own
+MIN_STRIPE_CENTRES = 20  # fewer centres in that window: the frame's peak is the reference
 
 
 def full_scale(dtype: np.dtype) -> float:
@@ -97,3 +101,36 @@ def _level_and_max(imT: np.ndarray, threshold: float, level: float | None,
         return float(level), float(data_max)
     lv = frame_levels(imT, threshold, data_max)
     return lv["level"], lv["data_max"]
+
+
+def stripe_peaks(peak: np.ndarray, nx: np.ndarray, ny: np.ndarray, frame_peak: float) -> np.ndarray:
+    """The peak of the stripe each centre lies on, for the frame's ``min_peak`` test.
+
+    Two lasers on in one frame may differ several times in brightness (their power, the
+    surface's angle to each); against the brighter one's peak, the other's centres would be
+    taken for glints and dropped. The stripes cross, so a centre's stripe is told by its
+    direction (the profile's normal ``nx, ny``): its peak is the ``PEAK_QUANTILE`` quantile
+    of the peaks of the centres running within ``ORIENT_WINDOW_DEG`` of it, where at least
+    ``MIN_STRIPE_CENTRES`` do, never above ``frame_peak``; elsewhere ``frame_peak``.
+    """
+    peak = np.asarray(peak, dtype=np.float64)
+    out = np.full(peak.size, float(frame_peak))
+    theta = np.degrees(np.arctan2(ny, nx)) % 180.0
+    ok = np.isfinite(theta) & np.isfinite(peak)
+    if ok.sum() < MIN_STRIPE_CENTRES:
+        return out
+    nb = round(180.0 / ORIENT_BIN_DEG)
+    b = np.minimum((theta[ok] / ORIENT_BIN_DEG).astype(np.int64), nb - 1)
+    order = np.argsort(b, kind="stable")
+    vals = peak[ok][order]
+    counts = np.bincount(b, minlength=nb)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    w = round(ORIENT_WINDOW_DEG / ORIENT_BIN_DEG)
+    ref = np.full(nb, float(frame_peak))
+    for k in np.flatnonzero(counts):
+        near = [(k + j) % nb for j in range(-w, w + 1)]  # directions wrap at 180 deg
+        v = np.concatenate([vals[starts[i]:starts[i] + counts[i]] for i in near])
+        if v.size >= MIN_STRIPE_CENTRES:
+            ref[k] = min(float(np.quantile(v, PEAK_QUANTILE)), float(frame_peak))
+    out[ok] = ref[b]
+    return out

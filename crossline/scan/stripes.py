@@ -91,7 +91,7 @@ from crossline.scan.stripe_frame import EXTRACTORS, _rows_of, any_angle, extract
 from crossline.scan.stripe_gaussian import gaussian
 from crossline.scan.stripe_grey import grey_centre
 from crossline.scan.stripe_kernels import CLOSE, EDGE, FLAG_NAMES, MERGED, SATURATED
-from crossline.scan.stripe_levels import NOISE_K, frame_levels, full_scale
+from crossline.scan.stripe_levels import NOISE_K, frame_levels, full_scale, stripe_peaks
 from crossline.scan.stripe_runs import COLUMNS, empty_centres
 from crossline.scan.stripe_steger import steger
 
@@ -235,7 +235,8 @@ def _frame_work(extractor: str, params: dict[str, Any], data_max: float):
                 W, H = top.shape
                 peak = top[np.round(c["u"]).astype(np.int64).clip(0, W - 1),
                            np.round(c["v"]).astype(np.int64).clip(0, H - 1)]
-            bright = peak >= lv["background"] + mp * (lv["peak"] - lv["background"])
+            ref = stripe_peaks(peak, c["nx"], c["ny"], lv["peak"])  # each centre's own stripe's
+            bright = peak >= lv["background"] + mp * (ref - lv["background"])
             if not bright.all():
                 c = {k: x[bright] for k, x in c.items()}
         return {**c, "_info": info}
