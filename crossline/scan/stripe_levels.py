@@ -109,9 +109,10 @@ def stripe_peaks(peak: np.ndarray, nx: np.ndarray, ny: np.ndarray, frame_peak: f
     Two lasers on in one frame may differ several times in brightness (their power, the
     surface's angle to each); against the brighter one's peak, the other's centres would be
     taken for glints and dropped. The stripes cross, so a centre's stripe is told by its
-    direction (the profile's normal ``nx, ny``): its peak is the ``PEAK_QUANTILE`` quantile
-    of the peaks of the centres running within ``ORIENT_WINDOW_DEG`` of it, where at least
-    ``MIN_STRIPE_CENTRES`` do, never above ``frame_peak``; elsewhere ``frame_peak``.
+    direction (the profile's normal ``nx, ny``): the centres are binned by direction
+    (``ORIENT_BIN_DEG``), and a centre's stripe peak is the highest ``PEAK_QUANTILE``
+    quantile of the bins within ``ORIENT_WINDOW_DEG`` of its own, where those bins hold at
+    least ``MIN_STRIPE_CENTRES`` centres, never above ``frame_peak``; elsewhere ``frame_peak``.
     """
     peak = np.asarray(peak, dtype=np.float64)
     out = np.full(peak.size, float(frame_peak))
@@ -121,16 +122,17 @@ def stripe_peaks(peak: np.ndarray, nx: np.ndarray, ny: np.ndarray, frame_peak: f
         return out
     nb = round(180.0 / ORIENT_BIN_DEG)
     b = np.minimum((theta[ok] / ORIENT_BIN_DEG).astype(np.int64), nb - 1)
-    order = np.argsort(b, kind="stable")
-    vals = peak[ok][order]
+    p = peak[ok]
+    srt = p[np.lexsort((p, b))]  # by bin, then by peak
     counts = np.bincount(b, minlength=nb)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    starts = np.cumsum(counts) - counts
+    q = np.full(nb, -np.inf)
+    has = counts > 0
+    q[has] = srt[starts[has] + np.floor(PEAK_QUANTILE * (counts[has] - 1)).astype(np.int64)]
     w = round(ORIENT_WINDOW_DEG / ORIENT_BIN_DEG)
-    ref = np.full(nb, float(frame_peak))
-    for k in np.flatnonzero(counts):
-        near = [(k + j) % nb for j in range(-w, w + 1)]  # directions wrap at 180 deg
-        v = np.concatenate([vals[starts[i]:starts[i] + counts[i]] for i in near])
-        if v.size >= MIN_STRIPE_CENTRES:
-            ref[k] = min(float(np.quantile(v, PEAK_QUANTILE)), float(frame_peak))
+    near_q = np.max([np.roll(q, j) for j in range(-w, w + 1)], axis=0)  # directions wrap at 180
+    near_n = np.sum([np.roll(counts, j) for j in range(-w, w + 1)], axis=0)
+    ref = np.where((near_n >= MIN_STRIPE_CENTRES) & np.isfinite(near_q),
+                   np.minimum(near_q, float(frame_peak)), float(frame_peak))
     out[ok] = ref[b]
     return out

@@ -235,8 +235,10 @@ def _frame_work(extractor: str, params: dict[str, Any], data_max: float):
                 W, H = top.shape
                 peak = top[np.round(c["u"]).astype(np.int64).clip(0, W - 1),
                            np.round(c["v"]).astype(np.int64).clip(0, H - 1)]
-            ref = stripe_peaks(peak, c["nx"], c["ny"], lv["peak"])  # each centre's own stripe's
-            bright = peak >= lv["background"] + mp * (ref - lv["background"])
+            bright = peak >= lv["background"] + mp * (lv["peak"] - lv["background"])
+            if not bright.all():  # held to its own stripe's peak (lower, where two differ)
+                ref = stripe_peaks(peak, c["nx"], c["ny"], lv["peak"])
+                bright = peak >= lv["background"] + mp * (ref - lv["background"])
             if not bright.all():
                 c = {k: x[bright] for k, x in c.items()}
         return {**c, "_info": info}
