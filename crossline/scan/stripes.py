@@ -91,7 +91,7 @@ from crossline.scan.stripe_frame import EXTRACTORS, _rows_of, any_angle, extract
 from crossline.scan.stripe_gaussian import gaussian
 from crossline.scan.stripe_grey import grey_centre
 from crossline.scan.stripe_kernels import CLOSE, EDGE, FLAG_NAMES, MERGED, SATURATED
-from crossline.scan.stripe_levels import NOISE_K, frame_levels, full_scale, stripe_peaks
+from crossline.scan.stripe_levels import MIN_STRIPE_CENTRES, NOISE_K, frame_levels, full_scale, stripe_peaks
 from crossline.scan.stripe_runs import COLUMNS, empty_centres
 from crossline.scan.stripe_steger import steger
 
@@ -135,6 +135,8 @@ STRIPES_SCHEMA = pa.schema(
     ]
 )
 _META_KEY = b"crossline"
+DIM_STRIPE = 0.6  # a stripe peaking below this fraction of the frame's peak is found at its own level
+DIM_SHARE = 0.15  # ... where it holds this share of the frame's centres (a stripe, not a grazing end)
 
 
 def _table(frame: int, state: str, c: dict[str, np.ndarray], du: float, dv: float) -> pa.Table:
@@ -199,16 +201,19 @@ class _GroupedWriter:
 
 
 def _frame_work(extractor: str, params: dict[str, Any], data_max: float):
-    """The per-frame function of the stage; it takes frames transposed, (width, height)."""
+    """The per-frame function of the stage; it takes frames transposed, (width, height), and
+    how many lasers the frame has on (a dim stripe beside a brighter one is looked for where
+    that is more than one: :func:`_with_dim_stripes`)."""
     kw = {"threshold": params["threshold"], "min_width": params["min_width"],
           "max_width": params["max_width"], "data_max": data_max}
+    thr, mw = params["threshold"], params["max_width"]
 
-    def work(i: int, imT: np.ndarray) -> dict[str, Any]:
-        lv = frame_levels(imT, params["threshold"], data_max)
+    def work(i: int, imT: np.ndarray, lasers_on: int = 1) -> dict[str, Any]:
+        lv = frame_levels(imT, thr, data_max)
         info: dict[str, Any] = {"levels": lv}
 
-        def fn_at(level: float):
-            first = [True]
+        def fn_at(level: float, record: bool):
+            first = [record]
 
             def fn(a: np.ndarray, d: np.ndarray | None = None) -> dict[str, np.ndarray]:
                 if extractor == "gaussian":
@@ -224,17 +229,24 @@ def _frame_work(extractor: str, params: dict[str, Any], data_max: float):
                               level=level, detect=_rows_of(d), **kw)  # Steger smooths the image itself
             return fn
 
-        mw = params["max_width"]
-        c, lv, top = with_local_background(
-            lambda a, level, d: any_angle(fn_at(level), a, level, mw, d), imT, lv, params["threshold"], mw)
+        def at(a: np.ndarray, level: float, d: np.ndarray | None, record: bool = True):
+            return any_angle(fn_at(level, record), a, level, mw, d)
+
+        c, lv, top = with_local_background(at, imT, lv, thr, mw)
         info["levels"], info["local_background"] = lv, top is not None
+        if not (c["u"].size and np.isfinite(lv["peak"])):
+            return {**c, "_info": info}
+        if lasers_on > 1:
+            def again(level: float, fraction: float):
+                if top is not None:  # the runs are the background-free image's already
+                    return at(imT, level, top, False), lv, top
+                return with_local_background(lambda a, lev, d: at(a, lev, d, False), imT,
+                                             {**lv, "level": level}, thr * fraction, mw)
+
+            c = _with_dim_stripes(c, lv, top, thr, again)
         mp = params.get("min_peak")
-        if mp and c["u"].size and np.isfinite(lv["peak"]):
-            peak = c["peak"]
-            if top is not None:  # the levels are the background-free image's: so the heights
-                W, H = top.shape
-                peak = top[np.round(c["u"]).astype(np.int64).clip(0, W - 1),
-                           np.round(c["v"]).astype(np.int64).clip(0, H - 1)]
+        if mp:
+            peak = _heights(c, top)
             bright = peak >= lv["background"] + mp * (lv["peak"] - lv["background"])
             if not bright.all():  # held to its own stripe's peak (lower, where two differ)
                 ref = stripe_peaks(peak, c["nx"], c["ny"], lv["peak"])
@@ -244,6 +256,55 @@ def _frame_work(extractor: str, params: dict[str, Any], data_max: float):
         return {**c, "_info": info}
 
     return work
+
+
+def _heights(c: dict[str, np.ndarray], top: np.ndarray | None) -> np.ndarray:
+    """The centres' peaks in the image their runs were found in (the frame, or ``top``, the
+    frame less its local background, on whose levels the thresholds then are)."""
+    if top is None:
+        return c["peak"]
+    W, H = top.shape
+    return top[np.round(c["u"]).astype(np.int64).clip(0, W - 1),
+               np.round(c["v"]).astype(np.int64).clip(0, H - 1)]
+
+
+def _with_dim_stripes(c: dict[str, np.ndarray], lv: dict[str, float], top: np.ndarray | None,
+                      threshold: float, again) -> dict[str, np.ndarray]:
+    """A frame's centres (``c``, found at the levels ``lv`` of ``top`` or the frame), with a stripe
+    much dimmer than the frame's peak found again at its own level.
+
+    Two lasers on in one frame may differ several times in brightness. At the level the
+    brighter one sets, a narrow dim stripe's runs are a pixel or two wide, below ``min_width``
+    in every other column, and its traces break. Where a stripe (told by its direction,
+    :func:`stripe_peaks`) peaks less than ``DIM_STRIPE`` of the frame's peak above the
+    background and holds ``DIM_SHARE`` of the centres at least (the dim, grazing end of a stripe
+    on a curved surface does not), the frame is extracted again at the dim stripe's own level, ``background +
+    threshold (its peak - background)`` (never below the noise floor), by ``again(level,
+    fraction)`` (``fraction``: its peak's of the frame's, above the background), which returns
+    the centres, levels and image as :func:`with_local_background` does. That stripe's centres
+    are taken from there, the others' from ``c``.
+    """
+    bg, top_peak = lv["background"], lv["peak"]
+    cut = bg + DIM_STRIPE * (top_peak - bg)
+    h = _heights(c, top)
+    if h.size < MIN_STRIPE_CENTRES or not np.any(h < cut):
+        return c
+    ref = stripe_peaks(h, c["nx"], c["ny"], top_peak)
+    dim = ref < cut
+    if dim.sum() < max(MIN_STRIPE_CENTRES, DIM_SHARE * dim.size):
+        return c
+    fraction = (float(ref[dim].min()) - bg) / (top_peak - bg)
+    level = max(bg + threshold * fraction * (top_peak - bg), bg + NOISE_K * lv["noise"])
+    if not level < lv["level"]:
+        return c
+    c2, lv2, top2 = again(level, fraction)
+    if not c2["u"].size:
+        return c
+    bg2, peak2 = lv2["background"], lv2["peak"]
+    dim2 = stripe_peaks(_heights(c2, top2), c2["nx"], c2["ny"], peak2) < bg2 + DIM_STRIPE * (peak2 - bg2)
+    out = {k: np.concatenate([c[k][~dim], c2[k][dim2]]) for k in c}
+    o = np.lexsort((out["v"], out["u"]))
+    return {k: x[o] for k, x in out.items()}
 
 
 def run_extract_stripes(
@@ -292,6 +353,7 @@ def run_extract_stripes(
     win = cap.rig.scan_window
     lo, hi = _chunk_bounds(len(sc.frames), chunk)
     all_states = np.asarray(sc.lasers).astype(str)
+    lasers_on = [0 if s == "off" else len(s) for s in all_states]  # A, B, AB or off
     params = {"threshold": threshold, "min_width": min_width, "max_width": max_width, "min_peak": min_peak,
               "off_frames": off_frames}
     if extractor == "steger":
@@ -351,7 +413,7 @@ def run_extract_stripes(
                 img, subtracted = room.subtract(i, img, data_max)
         if not extract_it:
             return None
-        c = fit(j, img)
+        c = fit(j, img, lasers_on[i])
         flags = {name: int(np.count_nonzero(c["flags"] & bit)) for bit, name in FLAG_NAMES.items()}
         return i, c, _table(int(sc.frames[i]), str(all_states[i]), c, win.x, win.y), flags, subtracted
 
