@@ -19,6 +19,7 @@ __all__ = [
     "NOISE_K",
     "PEAK_QUANTILE",
     "data_bits_for",
+    "direction_bins",
     "frame_levels",
     "full_scale",
     "stripe_peaks",
@@ -103,6 +104,17 @@ def _level_and_max(imT: np.ndarray, threshold: float, level: float | None,
     return lv["level"], lv["data_max"]
 
 
+def direction_bins(nx: np.ndarray, ny: np.ndarray) -> np.ndarray:
+    """Each centre's stripe direction, binned by ``ORIENT_BIN_DEG`` over 0-180 deg from its profile's
+    normal ``(nx, ny)``; -1 where that is undefined."""
+    theta = np.degrees(np.arctan2(ny, nx)) % 180.0
+    nb = round(180.0 / ORIENT_BIN_DEG)
+    out = np.full(theta.shape, -1, np.int64)
+    ok = np.isfinite(theta)
+    out[ok] = np.minimum((theta[ok] / ORIENT_BIN_DEG).astype(np.int64), nb - 1)
+    return out
+
+
 def stripe_peaks(peak: np.ndarray, nx: np.ndarray, ny: np.ndarray, frame_peak: float) -> np.ndarray:
     """The peak of the stripe each centre lies on, for the frame's ``min_peak`` test.
 
@@ -116,12 +128,12 @@ def stripe_peaks(peak: np.ndarray, nx: np.ndarray, ny: np.ndarray, frame_peak: f
     """
     peak = np.asarray(peak, dtype=np.float64)
     out = np.full(peak.size, float(frame_peak))
-    theta = np.degrees(np.arctan2(ny, nx)) % 180.0
-    ok = np.isfinite(theta) & np.isfinite(peak)
+    bins = direction_bins(nx, ny)
+    ok = (bins >= 0) & np.isfinite(peak)
     if ok.sum() < MIN_STRIPE_CENTRES:
         return out
     nb = round(180.0 / ORIENT_BIN_DEG)
-    b = np.minimum((theta[ok] / ORIENT_BIN_DEG).astype(np.int64), nb - 1)
+    b = bins[ok]
     p = peak[ok]
     srt = p[np.lexsort((p, b))]  # by bin, then by peak
     counts = np.bincount(b, minlength=nb)

@@ -91,7 +91,14 @@ from crossline.scan.stripe_frame import EXTRACTORS, _rows_of, any_angle, extract
 from crossline.scan.stripe_gaussian import gaussian
 from crossline.scan.stripe_grey import grey_centre
 from crossline.scan.stripe_kernels import CLOSE, EDGE, FLAG_NAMES, MERGED, SATURATED
-from crossline.scan.stripe_levels import MIN_STRIPE_CENTRES, NOISE_K, frame_levels, full_scale, stripe_peaks
+from crossline.scan.stripe_levels import (
+    MIN_STRIPE_CENTRES,
+    NOISE_K,
+    direction_bins,
+    frame_levels,
+    full_scale,
+    stripe_peaks,
+)
 from crossline.scan.stripe_runs import COLUMNS, empty_centres
 from crossline.scan.stripe_steger import steger
 
@@ -237,13 +244,13 @@ def _frame_work(extractor: str, params: dict[str, Any], data_max: float):
         if not (c["u"].size and np.isfinite(lv["peak"])):
             return {**c, "_info": info}
         if lasers_on > 1:
-            def again(level: float, fraction: float):
+            def again(level: float, fraction: float) -> dict[str, np.ndarray]:
                 if top is not None:  # the runs are the background-free image's already
-                    return at(imT, level, top, False), lv, top
+                    return at(imT, level, top, False)
                 return with_local_background(lambda a, lev, d: at(a, lev, d, False), imT,
-                                             {**lv, "level": level}, thr * fraction, mw)
+                                             {**lv, "level": level}, thr * fraction, mw)[0]
 
-            c = _with_dim_stripes(c, lv, top, thr, again)
+            c = _with_dim_stripes(c, lv, top, thr, again, imT.shape)
         mp = params.get("min_peak")
         if mp:
             peak = _heights(c, top)
@@ -268,21 +275,27 @@ def _heights(c: dict[str, np.ndarray], top: np.ndarray | None) -> np.ndarray:
                np.round(c["v"]).astype(np.int64).clip(0, H - 1)]
 
 
+def _pixels(c: dict[str, np.ndarray], W: int, H: int) -> tuple[np.ndarray, np.ndarray]:
+    """The centres' pixels, one more than their (u, v) (clipped to a border of one pixel)."""
+    return (np.round(c["u"]).astype(np.int64).clip(-1, W) + 1,
+            np.round(c["v"]).astype(np.int64).clip(-1, H) + 1)
+
+
 def _with_dim_stripes(c: dict[str, np.ndarray], lv: dict[str, float], top: np.ndarray | None,
-                      threshold: float, again) -> dict[str, np.ndarray]:
-    """A frame's centres (``c``, found at the levels ``lv`` of ``top`` or the frame), with a stripe
-    much dimmer than the frame's peak found again at its own level.
+                      threshold: float, again, shape: tuple[int, int]) -> dict[str, np.ndarray]:
+    """A frame's centres (``c``, found at the levels ``lv`` of ``top`` or the frame, of ``shape``
+    (width, height)), with a stripe much dimmer than the frame's peak filled in at its own level.
 
     Two lasers on in one frame may differ several times in brightness. At the level the
     brighter one sets, a narrow dim stripe's runs are a pixel or two wide, below ``min_width``
     in every other column, and its traces break. Where a stripe (told by its direction,
     :func:`stripe_peaks`) peaks less than ``DIM_STRIPE`` of the frame's peak above the
     background and holds ``DIM_SHARE`` of the centres at least (the dim, grazing end of a stripe
-    on a curved surface does not), the frame is extracted again at the dim stripe's own level, ``background +
-    threshold (its peak - background)`` (never below the noise floor), by ``again(level,
-    fraction)`` (``fraction``: its peak's of the frame's, above the background), which returns
-    the centres, levels and image as :func:`with_local_background` does. That stripe's centres
-    are taken from there, the others' from ``c``.
+    on a curved surface does not), the frame is extracted again at the dim stripe's own level,
+    ``background + threshold (its peak - background)`` (never below the noise floor), by
+    ``again(level, fraction)`` (``fraction``: its peak's of the frame's, above the background).
+    The centres of that pass in the dim stripe's directions are added where the first pass has
+    none within a pixel: the first pass's centres stay as they were.
     """
     bg, top_peak = lv["background"], lv["peak"]
     cut = bg + DIM_STRIPE * (top_peak - bg)
@@ -297,12 +310,21 @@ def _with_dim_stripes(c: dict[str, np.ndarray], lv: dict[str, float], top: np.nd
     level = max(bg + threshold * fraction * (top_peak - bg), bg + NOISE_K * lv["noise"])
     if not level < lv["level"]:
         return c
-    c2, lv2, top2 = again(level, fraction)
+    c2 = again(level, fraction)
     if not c2["u"].size:
         return c
-    bg2, peak2 = lv2["background"], lv2["peak"]
-    dim2 = stripe_peaks(_heights(c2, top2), c2["nx"], c2["ny"], peak2) < bg2 + DIM_STRIPE * (peak2 - bg2)
-    out = {k: np.concatenate([c[k][~dim], c2[k][dim2]]) for k in c}
+    # a first-pass centre holds its pixel and the next ones along its profile (column or row)
+    W, H = shape
+    near = np.zeros((W + 2, H + 2), bool)  # a border of one pixel
+    iu, iv = _pixels(c, W, H)
+    along_row = c["axis"] == 1
+    for d in (-1, 0, 1):
+        near[iu + d * along_row, iv + d * ~along_row] = True
+    add = np.isin(direction_bins(c2["nx"], c2["ny"]), np.unique(direction_bins(c["nx"], c["ny"])[dim]))
+    add &= ~near[_pixels(c2, W, H)]
+    if not add.any():
+        return c
+    out = {k: np.concatenate([c[k], c2[k][add]]) for k in c}
     o = np.lexsort((out["v"], out["u"]))
     return {k: x[o] for k, x in out.items()}
 
