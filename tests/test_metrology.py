@@ -70,6 +70,14 @@ def sphere_scene(n=30000, diameter=25.0, noise=0.0, seed=0, stem=True):
 def test_robust_sigma_of_gaussian():
     x = np.random.default_rng(0).normal(scale=0.7, size=200000)
     assert mt.robust_sigma(x) == pytest.approx(0.7, rel=0.01)
+    # about zero (a mismatch whose true value is zero), 10 % outliers move it little: the
+    # median of |y| is where 0.9 P(|x| < q) = 1/2
+    from scipy.stats import norm
+
+    y = np.concatenate([x[:180000], np.full(20000, 50.0)])
+    assert mt.robust_sigma(y, about=0.0) == pytest.approx(1.4826 * 0.7 * norm.ppf(0.5 + 0.25 / 0.9), rel=0.01)
+    # and a shared offset counts as spread
+    assert mt.robust_sigma(x + 0.7, about=0.0) > 1.5 * mt.robust_sigma(x + 0.7)
 
 
 def test_ransac_plane_ignores_outliers_exactly():

@@ -25,6 +25,7 @@ from crossline.geometry import (
     rotvec_to_matrix,
     transform_points,
 )
+from crossline.robust import robust_sigma
 
 __all__ = [
     "MISMATCH_K",
@@ -50,7 +51,7 @@ def mismatch_sigma(theta_A: np.ndarray, theta_B: np.ndarray) -> float:
     (those of one bad view) cannot inflate much.
     """
     m = np.abs(np.asarray(theta_A, dtype=np.float64) - np.asarray(theta_B, dtype=np.float64))
-    return max(1.4826 * float(np.median(m)), MISMATCH_SIGMA_FLOOR)
+    return max(robust_sigma(m, about=0.0), MISMATCH_SIGMA_FLOOR)
 
 
 def check_motion(A: np.ndarray, names: list[str] | None = None) -> dict[str, float]:

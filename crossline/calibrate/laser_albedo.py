@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from crossline.calibrate.detect import to_uint8
+from crossline.robust import robust_sigma
 
 __all__ = ["albedo_gain"]
 
@@ -73,7 +74,7 @@ def albedo_gain(
     for _ in range(4):  # speckle and glints: profiles far off the fit say nothing of the albedo
         coef = np.linalg.lstsq(A[inl], y[inl], rcond=None)[0]
         res = y - A @ coef
-        sig = 1.4826 * float(np.median(np.abs(res[inl] - np.median(res[inl])))) or 1e-6
+        sig = robust_sigma(res[inl]) or 1e-6
         inl = np.abs(res) <= 3.0 * sig
     r = float(np.exp(coef[-1]))
     s_p = float(np.median(ambient[plate & area]))

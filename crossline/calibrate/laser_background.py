@@ -13,6 +13,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from crossline.robust import robust_sigma
+
 __all__ = ["NOISE_K", "ambient_model", "remove_stripe"]
 
 NOISE_K = 8.0  # the stripe stands this many noise sigmas above the laser-minus-board difference
@@ -25,7 +27,7 @@ def _robust_noise(x: np.ndarray) -> float:
     quantised to a fraction of a count (MAD 0); at least sqrt(1/12)."""
     x = np.asarray(x, dtype=np.float64).ravel()
     d = x - np.median(x)
-    mad = 1.4826 * float(np.median(np.abs(d)))
+    mad = robust_sigma(x)
     near = d[np.abs(d) <= 5.0 * max(mad, 1.0)]
     rms = float(np.sqrt(np.mean(near**2))) if near.size else 0.0
     return max(mad, rms, float(np.sqrt(1.0 / 12.0)))
@@ -131,7 +133,7 @@ def ambient_model(board_image: np.ndarray, laser_image: np.ndarray, step: int = 
         a, b = 0.0, float(np.median(y))
     for _ in range(3):
         r = y - (a * x + b)
-        sigma = max(1.4826 * float(np.median(np.abs(r - np.median(r)))), 0.5)
+        sigma = max(robust_sigma(r), 0.5)
         keep = np.abs(r - np.median(r)) <= 3.0 * sigma
         if keep.sum() < 3 or np.ptp(x[keep]) == 0:
             break

@@ -17,6 +17,7 @@ from crossline.calibrate.laser_stripe import PoseStripe
 from crossline.calibrate.pose import board_pose
 from crossline.camera import Camera
 from crossline.geometry import fit_plane, plane_distance, plane_tilt_basis
+from crossline.robust import robust_sigma
 
 __all__ = ["camera_jacobian", "group_sigma", "robust_plane"]
 
@@ -28,7 +29,7 @@ def group_sigma(residuals: np.ndarray, groups: np.ndarray, inliers: np.ndarray) 
     for k in np.unique(groups):
         mk = groups == k
         rk = r[mk & inliers] if (mk & inliers).sum() >= 5 else r[mk]
-        sigma[mk] = 1.4826 * np.median(np.abs(rk - np.median(rk)))
+        sigma[mk] = robust_sigma(rk)
     return np.maximum(sigma, 1e-12)
 
 

@@ -1,28 +1,23 @@
 """Plane and sphere fitting shared by the report's metrology: least-squares and RANSAC.
 
 The lowest of the metrology modules: ``MIN_POINTS`` (fewest points for a figure),
-``robust_sigma``, the total-least-squares ``fit_plane``, ``laser_codes`` (A/B labels as
-codes), and the RANSAC searches ``ransac_plane`` and ``ransac_sphere`` (fixed seed, so every
-result is reproducible) that the artefact measurements start from. Split from
-``crossline.report.metrics`` (issue 21.3), which re-exports these names.
+``robust_sigma`` (:mod:`crossline.robust`'s), the total-least-squares ``fit_plane``,
+``laser_codes`` (A/B labels as codes), and the RANSAC searches ``ransac_plane`` and
+``ransac_sphere`` (fixed seed, so every result is reproducible) that the artefact
+measurements start from. Split from ``crossline.report.metrics`` (issue 21.3), which
+re-exports these names.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from crossline.robust import robust_sigma
+
 __all__ = ["MIN_POINTS", "fit_plane", "laser_codes", "masked_blocks", "ransac_plane", "ransac_sphere",
            "robust_sigma"]
 
 MIN_POINTS = 20  # fewest points for a figure to be reported at all
-
-
-def robust_sigma(x: np.ndarray) -> float:
-    """Standard deviation estimated from the median absolute deviation (1.4826 · MAD)."""
-    x = np.asarray(x, dtype=np.float64)
-    if x.size == 0:
-        return float("nan")
-    return float(1.4826 * np.median(np.abs(x - np.median(x))))
 
 
 def _subsample(n: int, size: int, rng: np.random.Generator) -> np.ndarray:

@@ -19,11 +19,11 @@ import numpy as np
 
 from crossline.errors import CrosslineError
 from crossline.report.nominal_surface import _Surface
+from crossline.robust import robust_sigma
 
 __all__ = ["align_to_nominal", "weakest_mode_ratio"]
 
 TUKEY_C = 4.685  # Tukey biweight constant: 95 % efficiency at Gaussian residuals
-MAD_TO_SIGMA = 1.4826
 # the fit's weakest motion constrained less than this fraction as strongly as its strongest
 # (smallest over largest eigenvalue of the point-to-plane information, rotations scaled by
 # the cloud's RMS radius, so the ratio has no unit): the surface lets the pose slide along
@@ -116,7 +116,7 @@ def _refine(
                 f"within {gate:.3g} mm of it after the coarse pose (give a datum)"
             )
         # the gate keeps points off the part (table, fixture) out of the robust sigma
-        sigma = max(MAD_TO_SIGMA * float(np.median(np.abs(r[use]))), sigma_floor)
+        sigma = max(robust_sigma(r[use], about=0.0), sigma_floor)
         k = TUKEY_C * sigma
         src.points = o3d.utility.Vector3dVector(x)
         corres = o3d.utility.Vector2iVector(np.repeat(use[:, None].astype(np.int32), 2, axis=1))

@@ -21,6 +21,8 @@ import matplotlib.textpath
 import numpy as np
 from matplotlib.figure import Figure
 
+from crossline.robust import robust_sigma
+
 __all__ = [
     "A4",
     "COLOURS",
@@ -254,7 +256,7 @@ def _hist(ax: Any, values: np.ndarray, bins: int, xlabel: str, clip: float = 0.1
     # heavy tails (edges, stray points) would squash the body into a few bins: at most
     # 8 robust sigmas either side of the median
     med = float(np.median(v))
-    rs = 1.4826 * float(np.median(np.abs(v - med)))
+    rs = robust_sigma(v)
     if rs > 0:
         lo, hi = max(lo, med - 8 * rs), min(hi, med + 8 * rs)
     if hi <= lo:

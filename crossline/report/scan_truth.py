@@ -15,6 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from crossline.robust import MAD_TO_SIGMA
+
 __all__ = ["read_mesh", "surface_distances", "uncertainty_coverage"]
 
 # the report stage's logger, as before the split: its records keep their name
@@ -59,7 +61,7 @@ def _mixture_sigma(sigmas: np.ndarray) -> float:
             lo = q
         else:
             hi = q
-    return 1.4826 * 0.5 * (lo + hi)
+    return MAD_TO_SIGMA * 0.5 * (lo + hi)
 
 
 SENSOR_ROWS = 20000  # true centre points per laser the sensor bound is evaluated at, at most

@@ -15,6 +15,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from crossline.geometry import angle_between, rotation_angle, rotvec_to_matrix
+from crossline.robust import robust_sigma
 from crossline.scan.labels import nearest_in_column
 
 __all__ = [
@@ -120,10 +121,9 @@ def label_errors(
         m = checked & ~crossing & (laser == truth) & (truth == name)
         r = dist[name][m]
         if r.size >= 10:
-            med = float(np.median(r))
             centre[name] = {"n": int(r.size), "mean_px": float(r.mean()),
                             "rms_px": float(np.sqrt(np.mean(r**2))),
-                            "sigma_px": 1.4826 * float(np.median(np.abs(r - med)))}
+                            "sigma_px": robust_sigma(r)}
     return {"points": int(frame.size), "checked": n_checked, "wrong": int(wrong.sum()),
             "wrong_away_from_crossing": int((wrong & ~crossing).sum()),
             "wrong_in_crossing_band": int((wrong & crossing).sum()),

@@ -38,6 +38,7 @@ import cv2
 import numpy as np
 
 from crossline.errors import StageError
+from crossline.robust import MAD_TO_SIGMA
 from crossline.scan.stripe_frame import remove_local_background
 
 __all__ = ["AGREE_SIGMAS", "OFF_MODES", "STRUCTURE_SIGMAS", "OffFrames", "agree", "brackets",
@@ -106,7 +107,7 @@ def noise_of(img: np.ndarray) -> tuple[float, float]:
     for k in np.unique(which):
         sel = which == k
         lv.append(float(np.median(lev[sel])))
-        var.append(float((1.4826 * np.median(d[sel])) ** 2 / 2.0))
+        var.append(float((MAD_TO_SIGMA * np.median(d[sel])) ** 2 / 2.0))  # d: absolute differences
     if len(lv) < 2:
         return max(var[0], 0.25), 0.0
     g = max(float(np.polyfit(lv, var, 1)[0]), 0.0)  # the slope; the intercept robustly below

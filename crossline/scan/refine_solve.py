@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from crossline.report.fitting import robust_sigma
+from crossline.robust import robust_sigma
 from crossline.scan.refine_crossings import Crossings
 from crossline.scan.refine_prior import ArmPrior, _prior_sparse, prior_covariance, prior_draws
 
@@ -111,7 +111,7 @@ def solve_errors(
         wi = w / (scale * s0) ** 2
         z_new = _normal_equations(J, wi, P, nu, beta_info, dense)(J.T @ (wi * cr.gap))
         res = (cr.gap - J @ z_new) / s0
-        new_scale = max(1.4826 * float(np.median(np.abs(res[w > 0]))), floor)
+        new_scale = max(robust_sigma(res[w > 0], about=0.0), floor)
         u = np.abs(res) / new_scale
         w_new = np.where(u <= huber, 1.0, np.where(u <= reject, huber / np.maximum(u, 1e-300), 0.0))
         # converged: the unknowns moved by less than a twentieth of their prior sigma

@@ -38,6 +38,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from crossline.robust import robust_sigma
+
 __all__ = [
     "CellSums",
     "SurfaceShape",
@@ -460,7 +462,7 @@ def sheet_sigma(samples: dict[str, tuple[np.ndarray, np.ndarray]]) -> tuple[dict
     for _ in range(4):
         coef = np.linalg.lstsq(A[keep] / scale, y[keep], rcond=None)[0] / scale
         r = y - A @ coef
-        mad = 1.4826 * np.median(np.abs(r[keep] - np.median(r[keep])))
+        mad = robust_sigma(r[keep])
         keep = np.abs(r) <= 3.0 * max(mad, 1e-9)
     blur2 = max(float(coef[-1]), 0.0)
     out = {k: 0.0 for k in samples}

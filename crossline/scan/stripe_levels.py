@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from crossline.robust import MAD_TO_SIGMA
+
 __all__ = [
     "DATA_BITS",
     "LEVEL_STEP",
@@ -75,7 +77,7 @@ def frame_levels(imT: np.ndarray, threshold: float, data_max: float | None = Non
     d = np.abs(a.astype(np.int32) - sample[:, 1::LEVEL_STEP][:, : a.shape[1]]).ravel()
     dh = np.bincount(d)
     dv = np.arange(dh.size, dtype=np.float64)
-    mad = 1.4826 * float(np.searchsorted(np.cumsum(dh), 0.5 * dh.sum()))
+    mad = MAD_TO_SIGMA * float(np.searchsorted(np.cumsum(dh), 0.5 * dh.sum()))
     near = dv <= 5.0 * max(mad, 1.0)
     noise = float(np.sqrt((dh[near] * dv[near] ** 2).sum() / max(dh[near].sum(), 1) / 2.0))
     noise = max(noise, float(np.sqrt(1.0 / 12.0)))
