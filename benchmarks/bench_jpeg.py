@@ -151,6 +151,7 @@ def plate_figures(capture: Path, points_path: Path, T_tool_cam: np.ndarray) -> d
     import pandas as pd
 
     from crossline.geometry import transform_from_pose
+    from crossline.robust import robust_sigma
     from crossline.scan.triangulate import to_base
 
     truth = json.loads((capture / "truth.json").read_text())
@@ -164,9 +165,8 @@ def plate_figures(capture: Path, points_path: Path, T_tool_cam: np.ndarray) -> d
     rep = p[["x", "y", "z"]].to_numpy() @ n + d  # with the reported (noisy) arm poses
 
     def stats(x: np.ndarray) -> dict:
-        med = float(np.median(x))
         return {"n": len(x), "mean_um": 1e3 * float(np.mean(x)), "sigma_um": 1e3 * float(np.std(x)),
-                "robust_sigma_um": 1e3 * 1.4826 * float(np.median(np.abs(x - med)))}
+                "robust_sigma_um": 1e3 * robust_sigma(x)}
 
     lasers = p["laser"].to_numpy()
     return {"true_poses": stats(r), "reported_poses": stats(rep),

@@ -54,6 +54,7 @@ def measure(capture: Path, margin_px: float) -> list[dict]:
     from crossline.errors import CrosslineError
     from crossline.geometry import angle_between
     from crossline.io.capture import open_capture
+    from crossline.robust import robust_sigma
 
     cap = open_capture(capture)
     truth = json.loads((capture / "truth.json").read_text())
@@ -76,7 +77,7 @@ def measure(capture: Path, margin_px: float) -> list[dict]:
                 r = s.points @ n_t + d_t
                 med = float(np.median(r))
                 poses.append({"pose": pose, "usable": True, "centres": len(r), "median_um": 1e3 * med,
-                              "sigma_um": 1e3 * 1.4826 * float(np.median(np.abs(r - med))),
+                              "sigma_um": 1e3 * robust_sigma(r),
                               "albedo": s.albedo})
                 pts.append(s.points)
                 groups.append(np.full(len(r), i))

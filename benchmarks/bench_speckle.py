@@ -48,6 +48,7 @@ sys.path.insert(0, str(HERE.parent))
 
 from crossline.optics import grain_px as optics_grain_px  # noqa: E402
 from crossline.report.speckle import centre_bound_px, stripe_bound_px  # noqa: E402
+from crossline.robust import robust_sigma  # noqa: E402
 from crossline.scan.stripe_frame import extract  # noqa: E402
 from crossline.sim.optics import speckle_field  # noqa: E402
 
@@ -153,10 +154,6 @@ def _extracted(img: np.ndarray, angle_deg: float) -> np.ndarray:
     return d[inner]
 
 
-def _robust_sigma(e: np.ndarray) -> float:
-    return float(1.4826 * np.median(np.abs(e - np.median(e)))) if e.size else float("nan")
-
-
 def run(frames: int, angles: list[float], sigmas: list[float], f_number: float) -> list[dict]:
     rng = np.random.default_rng(22)
     out = []
@@ -194,7 +191,7 @@ def run(frames: int, angles: list[float], sigmas: list[float], f_number: float) 
                    "contrast_per_pixel": {k: float(np.mean(v)) for k, v in contrast_px.items()}}
             for k, v in err.items():
                 e = np.concatenate(v) if v else np.zeros(0)
-                row[k] = {"sigma_px": _robust_sigma(e), "n": int(e.size)}
+                row[k] = {"sigma_px": robust_sigma(e), "n": int(e.size)}
             out.append(row)
             print(format_row(row), flush=True)
     return out
