@@ -81,13 +81,15 @@ def true_centres(T_btool: np.ndarray, cam: Camera, pl: LaserPlanes, laser: str) 
 
 
 def render(vs: list[np.ndarray], rng: np.random.Generator, sigma: float = 1.3, peak: float = 180.0,
-           bit_depth: int = 8, ambient: np.ndarray | None = None) -> np.ndarray:
-    """A frame of the window with Gaussian stripes centred on rows ``vs`` (full-sensor), on
-    the room's light ``ambient`` (counts, the window's shape) where given."""
+           bit_depth: int = 8, ambient: np.ndarray | None = None,
+           peaks: list[float] | None = None) -> np.ndarray:
+    """A frame of the window with Gaussian stripes centred on rows ``vs`` (full-sensor), of
+    heights ``peaks`` (default ``peak`` each), on the room's light ``ambient`` (counts, the
+    window's shape) where given."""
     _x0, y0, w, h = WINDOW
     rows = np.arange(y0, y0 + h, dtype=float)[:, None]
     img = np.full((h, w), 5.0) + (0.0 if ambient is None else ambient)
-    for v in vs:
+    for v, pk in zip(vs, peaks or [peak] * len(vs), strict=True):
         slope = np.gradient(v)
         cosf = 1.0 / np.sqrt(1.0 + slope**2)
         # pixel-integrated Gaussian across the line (normal distance)
@@ -96,7 +98,7 @@ def render(vs: list[np.ndarray], rng: np.random.Generator, sigma: float = 1.3, p
         for dv in sub:
             dn = (rows + dv - v[None, :]) * cosf[None, :]
             acc += np.exp(-0.5 * (dn / sigma) ** 2)
-        img += peak * np.nan_to_num(acc / sub.size)
+        img += pk * np.nan_to_num(acc / sub.size)
     img = img + rng.normal(0.0, 1.0, img.shape) * np.sqrt(img * 0.5 + 1.0)
     full = 255 if bit_depth == 8 else 65535
     scale = 1 if bit_depth == 8 else 257
@@ -104,9 +106,11 @@ def render(vs: list[np.ndarray], rng: np.random.Generator, sigma: float = 1.3, p
 
 
 def make_capture(root: Path, n_frames: int = 24, pattern=("A", "B", "AB"), seed: int = 0,
-                 states: list[str] | None = None, bit_depth: int = 8, ambient=None) -> dict:
+                 states: list[str] | None = None, bit_depth: int = 8, ambient=None,
+                 laser_peaks: dict[str, float] | None = None, sigma: float = 1.3) -> dict:
     """Write the analytic capture under ``root``; return the truth (centres per frame, rig).
-    ``ambient(i)`` gives frame i's room light (counts, the window's shape), if given."""
+    ``ambient(i)`` gives frame i's room light (counts, the window's shape), if given;
+    ``laser_peaks`` each laser's stripe height (default 180 counts), ``sigma`` their width (px)."""
     rng = np.random.default_rng(seed)
     root.mkdir(parents=True, exist_ok=True)
     x0, y0, w, h = WINDOW
@@ -141,9 +145,12 @@ def make_capture(root: Path, n_frames: int = 24, pattern=("A", "B", "AB"), seed:
             T = T_base_tool(i, len(states))
             vA = true_centres(T, cam, pl, "A")
             vB = true_centres(T, cam, pl, "B")
-            lit = {"A": [vA], "B": [vB], "AB": [vA, vB], "off": []}[st]
+            on = {"A": ["A"], "B": ["B"], "AB": ["A", "B"], "off": []}[st]
+            lit = [{"A": vA, "B": vB}[k] for k in on]
+            pk = [(laser_peaks or {}).get(k, 180.0) for k in on]
             amb = None if ambient is None else ambient(i)
-            write_png(fdir / f"{i:06d}.png", render(lit, rng, bit_depth=bit_depth, ambient=amb))
+            write_png(fdir / f"{i:06d}.png", render(lit, rng, sigma=sigma, bit_depth=bit_depth, ambient=amb,
+                                                    peaks=pk))
             q = matrix_to_quat(T[:3, :3])
             wr.writerow([i, f"{i / 80:.6f}", st, *(f"{x:.9f}" for x in T[:3, 3]),
                          *(f"{x:.12f}" for x in q)])

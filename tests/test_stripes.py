@@ -979,3 +979,30 @@ def test_a_narrow_dim_stripe_beside_a_bright_one_is_found_at_its_own_level():
     assert one_pass_cols < 0.85 and alone_cols > 0.99
     assert both_cols > 0.99
     assert both_sd < 1.1 * alone_sd
+
+
+def test_the_stage_fills_in_a_dim_stripe_of_its_two_laser_frames(tmp_path):
+    """The stage, on a scan whose laser B is narrow and a fifth as bright as A: its AB frames
+    find as many of B's columns as its B frames do, and the stripes' metadata counts the
+    frames and centres that the dim stripe's own level added."""
+    from crossline.scan.stripes import run_extract_stripes
+    from tests import scan_synth
+
+    truth = scan_synth.make_capture(tmp_path / "c", n_frames=12, laser_peaks={"A": 200.0, "B": 40.0},
+                                    sigma=0.8)
+    meta = run_extract_stripes(tmp_path / "c", "plate", tmp_path / "s.parquet", extractor="gaussian",
+                               threshold=0.10)
+    s = pq.read_table(tmp_path / "s.parquet").to_pandas()
+    x0 = scan_synth.WINDOW[0]
+
+    def b_columns(frame):
+        f = s[s["frame"] == frame]
+        vB = truth["v"][frame]["B"][np.round(f["u"]).astype(int) - x0]
+        return np.unique(np.round(f["u"][np.abs(f["v"] - vB) < 1.5])).size
+
+    states = np.asarray(truth["states"])
+    in_b = np.mean([b_columns(i) for i in np.flatnonzero(states == "B")])
+    in_ab = np.mean([b_columns(i) for i in np.flatnonzero(states == "AB")])
+    assert in_ab > 0.95 * in_b  # 0.97 (0.74 without the second pass)
+    assert meta["counts"]["frames_dim_stripe"] == np.sum(states == "AB")
+    assert meta["counts"]["centres_dim_stripe"] > 0

@@ -94,7 +94,6 @@ from crossline.scan.stripe_kernels import CLOSE, EDGE, FLAG_NAMES, MERGED, SATUR
 from crossline.scan.stripe_levels import (
     MIN_STRIPE_CENTRES,
     NOISE_K,
-    direction_bins,
     frame_levels,
     full_scale,
     stripe_peaks,
@@ -250,13 +249,18 @@ def _frame_work(extractor: str, params: dict[str, Any], data_max: float):
                 return with_local_background(lambda a, lev, d: at(a, lev, d, False), imT,
                                              {**lv, "level": level}, thr * fraction, mw)[0]
 
-            c = _with_dim_stripes(c, lv, top, thr, again, imT.shape)
+            n_first = c["u"].size
+            c, dim_peak = _with_dim_stripes(c, lv, top, thr, again, imT.shape)
+            info["dim_stripe_centres"] = c["u"].size - n_first
+        else:
+            dim_peak = np.full(c["u"].size, np.nan)
         mp = params.get("min_peak")
         if mp:
             peak = _heights(c, top)
             bright = peak >= lv["background"] + mp * (lv["peak"] - lv["background"])
             if not bright.all():  # held to its own stripe's peak (lower, where two differ)
                 ref = stripe_peaks(peak, c["nx"], c["ny"], lv["peak"])
+                ref = np.where(np.isfinite(dim_peak), np.minimum(ref, dim_peak), ref)
                 bright = peak >= lv["background"] + mp * (ref - lv["background"])
             if not bright.all():
                 c = {k: x[bright] for k, x in c.items()}
@@ -281,8 +285,10 @@ def _pixels(c: dict[str, np.ndarray], W: int, H: int) -> tuple[np.ndarray, np.nd
             np.round(c["v"]).astype(np.int64).clip(-1, H) + 1)
 
 
-def _with_dim_stripes(c: dict[str, np.ndarray], lv: dict[str, float], top: np.ndarray | None,
-                      threshold: float, again, shape: tuple[int, int]) -> dict[str, np.ndarray]:
+def _with_dim_stripes(
+    c: dict[str, np.ndarray], lv: dict[str, float], top: np.ndarray | None, threshold: float, again,
+    shape: tuple[int, int],
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """A frame's centres (``c``, found at the levels ``lv`` of ``top`` or the frame, of ``shape``
     (width, height)), with a stripe much dimmer than the frame's peak filled in at its own level.
 
@@ -294,25 +300,34 @@ def _with_dim_stripes(c: dict[str, np.ndarray], lv: dict[str, float], top: np.nd
     on a curved surface does not), the frame is extracted again at the dim stripe's own level,
     ``background + threshold (its peak - background)`` (never below the noise floor), by
     ``again(level, fraction)`` (``fraction``: its peak's of the frame's, above the background).
-    The centres of that pass in the dim stripe's directions are added where the first pass has
-    none within a pixel: the first pass's centres stay as they were.
+    The dim centres of that pass (below the same fraction of the frame's peak) are added where
+    the first pass has none within a pixel along their profile; the first pass's stay as they
+    were. (A narrow dim stripe's direction is too noisy to tell its centres by.) Returns the
+    centres and the peak that the ``min_peak`` test holds each to where it is not its stripe's
+    (:func:`stripe_peaks`, NaN here): the dim stripe's, for every centre below the cut of a
+    frame that has one.
     """
+    none = (c, np.full(c["u"].size, np.nan))
     bg, top_peak = lv["background"], lv["peak"]
     cut = bg + DIM_STRIPE * (top_peak - bg)
     h = _heights(c, top)
     if h.size < MIN_STRIPE_CENTRES or not np.any(h < cut):
-        return c
+        return none
     ref = stripe_peaks(h, c["nx"], c["ny"], top_peak)
     dim = ref < cut
     if dim.sum() < max(MIN_STRIPE_CENTRES, DIM_SHARE * dim.size):
-        return c
-    fraction = (float(ref[dim].min()) - bg) / (top_peak - bg)
+        return none
+    dim_peak = float(ref[dim].min())
+    fraction = (dim_peak - bg) / (top_peak - bg)
     level = max(bg + threshold * fraction * (top_peak - bg), bg + NOISE_K * lv["noise"])
     if not level < lv["level"]:
-        return c
+        return none
     c2 = again(level, fraction)
+    # a centre below the cut may be the dim stripe's or a dim stretch of the bright one (a
+    # narrow stripe's direction is too noisy to tell): either is held to the dim stripe's peak
+    own = np.where(h < cut, dim_peak, np.nan)
     if not c2["u"].size:
-        return c
+        return c, own
     # a first-pass centre holds its pixel and the next ones along its profile (column or row)
     W, H = shape
     near = np.zeros((W + 2, H + 2), bool)  # a border of one pixel
@@ -320,13 +335,13 @@ def _with_dim_stripes(c: dict[str, np.ndarray], lv: dict[str, float], top: np.nd
     along_row = c["axis"] == 1
     for d in (-1, 0, 1):
         near[iu + d * along_row, iv + d * ~along_row] = True
-    add = np.isin(direction_bins(c2["nx"], c2["ny"]), np.unique(direction_bins(c["nx"], c["ny"])[dim]))
-    add &= ~near[_pixels(c2, W, H)]
+    add = ~near[_pixels(c2, W, H)] & (_heights(c2, top) < cut)
     if not add.any():
-        return c
+        return c, own
     out = {k: np.concatenate([c[k], c2[k][add]]) for k in c}
+    own = np.concatenate([own, np.full(int(add.sum()), dim_peak)])
     o = np.lexsort((out["v"], out["u"]))
-    return {k: x[o] for k, x in out.items()}
+    return {k: x[o] for k, x in out.items()}, own[o]
 
 
 def run_extract_stripes(
@@ -392,6 +407,7 @@ def run_extract_stripes(
         "frames_in_scan": len(sc.frames),
     }
     counts = {"frames": 0, "frames_without_stripe": 0, "frames_local_background": 0, "centres": 0,
+              "frames_dim_stripe": 0, "centres_dim_stripe": 0,
               **{f"flag_{name}": 0 for name in FLAG_NAMES.values()}}
     room = None
     if off_frames == "subtract" and (all_states == "off").any():
@@ -466,6 +482,9 @@ def run_extract_stripes(
                 nc = c["u"].size
                 counts["frames_without_stripe"] += nc == 0
                 counts["frames_local_background"] += bool(c["_info"]["local_background"])
+                dim = int(c["_info"].get("dim_stripe_centres", 0))
+                counts["frames_dim_stripe"] += dim > 0
+                counts["centres_dim_stripe"] += dim
                 counts["centres"] += nc
                 for name, k in flags.items():
                     counts[f"flag_{name}"] += k
@@ -495,9 +514,11 @@ def run_extract_stripes(
         writer.close(meta)
     dt = time.perf_counter() - t0
     log.info("scan %s: %d frames, %d centres, %.1f frames/s (%s, %d threads); %d frames had room-lit "
-             "surfaces above the threshold and were extracted less their local background", scan,
-             counts["frames"], counts["centres"], counts["frames"] / max(dt, 1e-9), extractor, threads,
-             counts["frames_local_background"])
+             "surfaces above the threshold and were extracted less their local background; in %d "
+             "frames a stripe much dimmer than the other was found again at its own level (%d "
+             "centres added)", scan, counts["frames"], counts["centres"], counts["frames"] / max(dt, 1e-9),
+             extractor, threads, counts["frames_local_background"], counts["frames_dim_stripe"],
+             counts["centres_dim_stripe"])
     if room is not None:
         log.info("scan %s: the room's light of its off frames subtracted from %d laser frames, not "
                  "from %d (it moved between their two off frames, or they have one only); %d off "
