@@ -156,7 +156,8 @@ def run_workflow(caps: dict[str, Path], cores: int, cache: Path = CACHE) -> tupl
         if not link.exists():
             link.symlink_to(path.resolve(), target_is_directory=True)
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "snakemake", "--cores", str(cores), "--keep-going"],
+    proc = subprocess.run([sys.executable, "-m", "snakemake", "--cores", str(cores), "--keep-going",
+                           "--rerun-incomplete"],  # a run stopped half-way does not block the next
                           cwd=wd, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     (wd / "snakemake.log").write_text(proc.stdout + proc.stderr)

@@ -94,6 +94,7 @@ from crossline.scan.stripe_kernels import CLOSE, EDGE, FLAG_NAMES, MERGED, SATUR
 from crossline.scan.stripe_levels import (
     MIN_STRIPE_CENTRES,
     NOISE_K,
+    direction_bins,
     frame_levels,
     full_scale,
     stripe_peaks,
@@ -300,12 +301,12 @@ def _with_dim_stripes(
     on a curved surface does not), the frame is extracted again at the dim stripe's own level,
     ``background + threshold (its peak - background)`` (never below the noise floor), by
     ``again(level, fraction)`` (``fraction``: its peak's of the frame's, above the background).
-    The dim centres of that pass (below the same fraction of the frame's peak) are added where
-    the first pass has none within a pixel along their profile; the first pass's stay as they
-    were. (A narrow dim stripe's direction is too noisy to tell its centres by.) Returns the
-    centres and the peak that the ``min_peak`` test holds each to where it is not its stripe's
-    (:func:`stripe_peaks`, NaN here): the dim stripe's, for every centre below the cut of a
-    frame that has one.
+    The centres of that pass in the dim stripe's directions are added where the first pass has
+    none within a pixel along their profile; the first pass's stay as they were. Returns the
+    centres and, for each, the dim stripe's peak where that pass added it (else NaN), which the
+    ``min_peak`` test holds it to. The stripes are told apart by direction, as a cross's two
+    lines are; two stripes within ``stripe_levels.ORIENT_WINDOW_DEG`` of each other, or a narrow
+    dim stripe whose centres' directions scatter that far, are filled in only in part.
     """
     none = (c, np.full(c["u"].size, np.nan))
     bg, top_peak = lv["background"], lv["peak"]
@@ -323,11 +324,8 @@ def _with_dim_stripes(
     if not level < lv["level"]:
         return none
     c2 = again(level, fraction)
-    # a centre below the cut may be the dim stripe's or a dim stretch of the bright one (a
-    # narrow stripe's direction is too noisy to tell): either is held to the dim stripe's peak
-    own = np.where(h < cut, dim_peak, np.nan)
     if not c2["u"].size:
-        return c, own
+        return none
     # a first-pass centre holds its pixel and the next ones along its profile (column or row)
     W, H = shape
     near = np.zeros((W + 2, H + 2), bool)  # a border of one pixel
@@ -335,11 +333,12 @@ def _with_dim_stripes(
     along_row = c["axis"] == 1
     for d in (-1, 0, 1):
         near[iu + d * along_row, iv + d * ~along_row] = True
-    add = ~near[_pixels(c2, W, H)] & (_heights(c2, top) < cut)
+    add = np.isin(direction_bins(c2["nx"], c2["ny"]), np.unique(direction_bins(c["nx"], c["ny"])[dim]))
+    add &= ~near[_pixels(c2, W, H)]
     if not add.any():
-        return c, own
+        return none
     out = {k: np.concatenate([c[k], c2[k][add]]) for k in c}
-    own = np.concatenate([own, np.full(int(add.sum()), dim_peak)])
+    own = np.concatenate([none[1], np.full(int(add.sum()), dim_peak)])
     o = np.lexsort((out["v"], out["u"]))
     return {k: x[o] for k, x in out.items()}, own[o]
 
