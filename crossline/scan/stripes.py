@@ -251,16 +251,17 @@ def _frame_work(extractor: str, params: dict[str, Any], data_max: float):
                                              {**lv, "level": level}, thr * fraction, mw)[0]
 
             n_first = c["u"].size
-            c, dim_peak = _with_dim_stripes(c, lv, top, thr, again, imT.shape)
+            c, dim_peak, ref = _with_dim_stripes(c, lv, top, thr, again, imT.shape)
             info["dim_stripe_centres"] = c["u"].size - n_first
         else:
-            dim_peak = np.full(c["u"].size, np.nan)
+            dim_peak, ref = np.full(c["u"].size, np.nan), None
         mp = params.get("min_peak")
         if mp:
             peak = _heights(c, top)
             bright = peak >= lv["background"] + mp * (lv["peak"] - lv["background"])
             if not bright.all():  # held to its own stripe's peak (lower, where two differ)
-                ref = stripe_peaks(peak, c["nx"], c["ny"], lv["peak"])
+                if ref is None:
+                    ref = stripe_peaks(peak, c["nx"], c["ny"], lv["peak"])
                 ref = np.where(np.isfinite(dim_peak), np.minimum(ref, dim_peak), ref)
                 bright = peak >= lv["background"] + mp * (ref - lv["background"])
             if not bright.all():
@@ -289,7 +290,7 @@ def _pixels(c: dict[str, np.ndarray], W: int, H: int) -> tuple[np.ndarray, np.nd
 def _with_dim_stripes(
     c: dict[str, np.ndarray], lv: dict[str, float], top: np.ndarray | None, threshold: float, again,
     shape: tuple[int, int],
-) -> tuple[dict[str, np.ndarray], np.ndarray]:
+) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray | None]:
     """A frame's centres (``c``, found at the levels ``lv`` of ``top`` or the frame, of ``shape``
     (width, height)), with a stripe much dimmer than the frame's peak filled in at its own level.
 
@@ -304,17 +305,19 @@ def _with_dim_stripes(
     The centres of that pass in the dim stripe's directions are added where the first pass has
     none within a pixel along their profile; the first pass's stay as they were. Returns the
     centres and, for each, the dim stripe's peak where that pass added it (else NaN), which the
-    ``min_peak`` test holds it to. The stripes are told apart by direction, as a cross's two
+    ``min_peak`` test holds it to, and their :func:`stripe_peaks` where it computed them for the
+    centres it returns (else ``None``). The stripes are told apart by direction, as a cross's two
     lines are; two stripes within ``stripe_levels.ORIENT_WINDOW_DEG`` of each other, or a narrow
     dim stripe whose centres' directions scatter that far, are filled in only in part.
     """
-    none = (c, np.full(c["u"].size, np.nan))
+    nan = np.full(c["u"].size, np.nan)
     bg, top_peak = lv["background"], lv["peak"]
     cut = bg + DIM_STRIPE * (top_peak - bg)
     h = _heights(c, top)
     if h.size < MIN_STRIPE_CENTRES or not np.any(h < cut):
-        return none
+        return c, nan, None
     ref = stripe_peaks(h, c["nx"], c["ny"], top_peak)
+    none = (c, nan, ref)  # the first pass's centres, as they are
     dim = ref < cut
     if dim.sum() < max(MIN_STRIPE_CENTRES, DIM_SHARE * dim.size):
         return none
@@ -338,9 +341,9 @@ def _with_dim_stripes(
     if not add.any():
         return none
     out = {k: np.concatenate([c[k], c2[k][add]]) for k in c}
-    own = np.concatenate([none[1], np.full(int(add.sum()), dim_peak)])
+    own = np.concatenate([nan, np.full(int(add.sum()), dim_peak)])
     o = np.lexsort((out["v"], out["u"]))
-    return {k: x[o] for k, x in out.items()}, own[o]
+    return {k: x[o] for k, x in out.items()}, own[o], None
 
 
 def run_extract_stripes(
