@@ -585,7 +585,7 @@ def test_gauge_plate_normal_from_short_crossing_stripes():
     top only, 3 mm long (a near-vertical stripe on a narrow block): it spans the plane less
     than 1 % as much as the long stripes do, yet tells its normal to within its noise; the
     frames' normal is taken and the drift does not tilt the heights."""
-    from crossline.report.artefacts import gauge_groups
+    from crossline.report.gauge_block import gauge_groups
 
     pts, frame = _swept_gauge(crossed=False)
     rng = np.random.default_rng(4)

@@ -313,7 +313,7 @@ def test_near_vertical_stripe_is_labelled_and_triangulated(tmp_path):
     A point at all) and the gauge, seen by B's parallel stripes alone, measured 30 um high
     with the arm's reported poses. Here with the true calibration and poses: both lasers'
     points lie on the true faces, and the block's height is right."""
-    from crossline.report.artefacts import measure_gauge_block
+    from crossline.report.gauge_block import measure_gauge_block
     from crossline.report.scan_truth import surface_distances
     from tests.test_sheet_curvature import _true_capture
 

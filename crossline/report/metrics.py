@@ -24,11 +24,11 @@ The figures follow the paper and the standards a metrologist expects:
 - freeform: signed distance of every point to a reference mesh (float64 refinement).
 
 The code lives in modules beside this one (issue 21.3): ``fitting`` (least-squares and
-RANSAC planes and spheres, ``robust_sigma``), ``artefacts`` (plane, gauge block, sphere and
-their results), ``freeform`` (signed distance to a mesh, deviation statistics) and
-``validation`` (estimates against truth). This one keeps the A/B laser comparison and
-re-exports the names its importers use, so ``from crossline.report import metrics as mt``
-and ``mt.<name>`` work as before.
+RANSAC planes and spheres, ``robust_sigma``), ``artefacts`` (plane, sphere, ball bar and
+their results), ``gauge_block`` (the gauge block and its result), ``freeform`` (signed
+distance to a mesh, deviation statistics) and ``validation`` (estimates against truth).
+This one keeps the A/B laser comparison and re-exports the names its importers use, so
+``from crossline.report import metrics as mt`` and ``mt.<name>`` work as before.
 """
 
 from __future__ import annotations
@@ -42,14 +42,11 @@ from crossline.geometry import angle_between as angle_between
 from crossline.geometry import fit_sphere, plane_distance
 from crossline.report.artefacts import (
     BallBarResult,
-    GaugeResult,
     PlaneResult,
     SphereResult,
     measure_ball_bar,
-    measure_gauge_block,
     measure_plane,
     measure_sphere,
-    plane_basis,
     plane_offset,
     sphere_by_incidence,
 )
@@ -62,6 +59,7 @@ from crossline.report.fitting import (
     robust_sigma,
 )
 from crossline.report.freeform import deviation_stats, mesh_signed_distance, point_triangle_closest
+from crossline.report.gauge_block import GaugeResult, measure_gauge_block, plane_basis
 from crossline.report.validation import (
     camera_error,
     frame_rotation,

@@ -44,7 +44,7 @@ import numpy as np
 from crossline.camera import Camera
 from crossline.geometry import fit_plane, invert_transform, rotvec_to_matrix
 from crossline.laser import LaserPlane, LaserPlanes
-from crossline.report.artefacts import gauge_groups, normal_within_frames
+from crossline.report.gauge_block import gauge_groups, normal_within_frames
 from crossline.scan.triangulate import triangulate
 
 __all__ = [
