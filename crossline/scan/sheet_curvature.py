@@ -12,8 +12,8 @@ sigma_f / f1`` the profile's width; ``k`` is the extractor's response to skew (a
 intensity centroid, -5.5 for the speckle-weighted Gaussian fit, whose weights favour the
 tails; a mode would not move). The centre, triangulated with the centre plane, lands off the
 surface: a sphere of radius R is measured small by about ``sigma_f^2 / R`` times the
-extractor's factor (random rig 7: sheet 0.34 mm, ball 20 mm, diameter -37 um; with a sheet
-0.35 x as thick, -2 um).
+extractor's factor (docs/method.md, "Stripe centres corrected for the sheet's thickness", gives
+a case measured on a random rig).
 
 The correction, at the cause: :func:`surface_shape` (or :class:`CellSums` for a long scan)
 fits the local shape of the scanned surface (normal and second fundamental form, from the
