@@ -78,7 +78,6 @@ from typing import Any
 
 import cv2
 import numpy as np
-import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
@@ -483,13 +482,6 @@ def read_stripes_meta(path: str | Path) -> dict[str, Any]:
     if not isinstance(meta, dict):
         raise StageError(f"{path}: its crossline metadata is a {type(meta).__name__}, expected an object")
     return meta
-
-
-def iter_stripe_groups(path: str | Path) -> Iterator[pd.DataFrame]:
-    """The row groups of a stripes parquet, in order, as DataFrames."""
-    pf = pq.ParquetFile(path)
-    for g in range(pf.num_row_groups):
-        yield pf.read_row_group(g).to_pandas()
 
 
 def gather_stripes(chunks: Iterable[str | Path], out: str | Path) -> dict[str, Any]:
