@@ -8,9 +8,11 @@ import pytest
 from crossline.scan.centreline import (
     blocked_ends,
     half_amplitude_columns,
+    join_traces,
     link_traces,
     smooth_along,
     trace_position,
+    trace_space,
 )
 
 
@@ -139,3 +141,55 @@ def test_half_amplitude_period_is_what_the_smoothing_passes_at_half(window) -> N
 
 def test_half_amplitude_period_without_smoothing_is_infinite() -> None:
     assert half_amplitude_columns(1) == np.inf and half_amplitude_columns(3) == np.inf
+
+
+def _profiled(u_img, v_img):
+    """A curve's points sampled as the extractor profiles it: per integer column where it runs
+    shallower than 45 deg, per integer row where steeper; returns u, v, axis."""
+    du, dv = np.gradient(u_img), np.gradient(v_img)
+    steep = np.abs(dv) > np.abs(du)
+    us, vs, axs = [], [], []
+    for seg in np.split(np.arange(u_img.size), np.flatnonzero(np.diff(steep.astype(int))) + 1):
+        ax = int(steep[seg[0]])
+        s = np.stack([u_img[seg], v_img[seg]], axis=1)
+        o = np.argsort(s[:, ax])
+        grid = np.arange(np.ceil(s[:, ax].min()), np.floor(s[:, ax].max()) + 1)
+        other = np.interp(grid, s[o, ax], s[o, 1 - ax])
+        us.append(grid if ax == 0 else other)
+        vs.append(other if ax == 0 else grid)
+        axs.append(np.full(grid.size, ax))
+    return np.concatenate(us), np.concatenate(vs), np.concatenate(axs)
+
+
+def test_a_curve_through_the_row_switch_is_joined_into_one_trace() -> None:
+    t = np.linspace(np.radians(200), np.radians(340), 20001)  # an arc: steep, shallow, steep
+    u, v, axis = _profiled(500 + 150 * np.cos(t), 500 + 150 * np.sin(t))
+    tu, tv = trace_space(u, v, axis)
+    trace, _, _ = trace_position(link_traces(np.zeros(u.size), np.zeros(u.size), tu, tv), tu)
+    assert len(np.unique(trace)) >= 3  # split where the profiles change direction
+    joined = join_traces(trace, tu, u, v)
+    long_ = np.isin(trace, [k for k in np.unique(trace) if (trace == k).sum() >= 5])
+    assert len(np.unique(joined[long_])) == 1
+    rng = np.random.default_rng(1)
+    order = rng.permutation(u.size)  # input order must not matter
+    assert np.array_equal(join_traces(trace[order], tu[order], u[order], v[order]), joined[order])
+
+
+@pytest.mark.parametrize("angle_deg", [8.0, 25.0, 60.0])
+def test_two_stripes_meeting_at_a_crossing_are_not_joined(angle_deg) -> None:
+    """Two lines crossing at ``angle_deg``, the merged run at the crossing left out: their ends
+    there lie side by side (same side) or face each other across the gap (opposite sides),
+    and no trace of one is joined to a trace of the other."""
+    x = np.arange(300.0, 701.0)
+    ya = 400 + 0.1 * (x - 500)
+    yb = 400 + np.tan(np.arctan(0.1) + np.radians(angle_deg)) * (x - 500)
+    u, v, lab = np.r_[x, x], np.r_[ya, yb], np.r_[np.zeros(x.size), np.ones(x.size)]
+    keep = np.abs(np.r_[ya - yb, yb - ya]) >= 5.0  # where the two runs overlap: one merged run
+    keep &= (v >= 0) & (v < 800)
+    u, v, lab = u[keep], v[keep], lab[keep]
+    axis = np.zeros(u.size, int)
+    tu, tv = trace_space(u, v, axis)
+    trace, _, _ = trace_position(link_traces(np.zeros(u.size), np.zeros(u.size), tu, tv), tu)
+    joined = join_traces(trace, tu, u, v)
+    for g in np.unique(joined):
+        assert np.unique(lab[joined == g]).size == 1

@@ -17,8 +17,8 @@ import numpy as np
 
 from crossline.jit import jit
 
-__all__ = ["ROW_OFFSET", "blocked_ends", "half_amplitude_columns", "image_space", "link_traces",
-           "smooth_along", "trace_position", "trace_space"]
+__all__ = ["ROW_OFFSET", "blocked_ends", "half_amplitude_columns", "image_space", "join_traces",
+           "link_traces", "smooth_along", "trace_position", "trace_space"]
 
 # where the row-profiled centres' columns start in trace space: beyond any image column, so
 # that a steep stripe's trace never meets a column-profiled one (sensors are < 2**17 px wide)
@@ -208,6 +208,73 @@ def trace_position(
     vv = np.zeros(n) if v is None else np.asarray(v, dtype=np.float64)
     root, start, end = _trace_position(np.asarray(prev, dtype=np.int64), col, vv, v is not None)
     return root, start, end
+
+
+def join_traces(
+    trace: np.ndarray, along: np.ndarray, u: np.ndarray, v: np.ndarray, *,
+    max_gap_px: float = 5.0, max_turn_deg: float = 20.0, max_offset_px: float = 1.5,
+    end_points: int = 5,
+) -> np.ndarray:
+    """Trace ids (per centre) with the traces that continue one another in the image joined.
+
+    A stripe whose slope passes the switch between column and row profiles (a curve on a ball)
+    is two traces in trace space (:func:`trace_space`), end to end in the image, often with a
+    centre or two between them that link to neither. Two traces of ``end_points`` centres or
+    more are joined where an end of one lies within ``max_gap_px`` (image px) of an end of the
+    other, ahead of it (off the line of its last centres by ``max_offset_px`` at most, each
+    way), and the two run on within ``max_turn_deg``. Where two stripes meet, their ends point
+    the same way, or lie side by side: they are not joined. Each end joins one other, the
+    nearest. ``along`` orders the centres of a trace (its trace-space column); ``trace`` as
+    :func:`trace_position` gives it. Returns, per centre, the smallest trace id of its group.
+    """
+    trace = np.asarray(trace, dtype=np.int64)
+    ids, inv = np.unique(trace, return_inverse=True)
+    inv = inv.reshape(-1)
+    nt = ids.size
+    if nt < 2:
+        return trace.copy()
+    order = np.lexsort((np.asarray(along, dtype=np.float64), inv))
+    first = np.searchsorted(inv[order], np.arange(nt), side="left")
+    last = np.searchsorted(inv[order], np.arange(nt), side="right") - 1
+    long_ = np.flatnonzero(last - first >= end_points - 1)
+    if long_.size < 2:
+        return trace.copy()
+    xy = np.stack([np.asarray(u, dtype=np.float64), np.asarray(v, dtype=np.float64)], axis=1)[order]
+    a, b = first[long_], last[long_]
+    k = end_points - 1
+    pos = np.concatenate([xy[a], xy[b]])  # the long traces' ends, and their outward directions
+    out = np.concatenate([xy[a] - xy[a + k], xy[b] - xy[b - k]])
+    norm = np.linalg.norm(out, axis=1, keepdims=True)
+    out = out / np.where(norm > 0, norm, np.inf)
+    owner = np.concatenate([long_, long_])
+    gap = pos[None, :, :] - pos[:, None, :]  # from end i to end j
+    dist = np.linalg.norm(gap, axis=2)
+    cos_turn = np.cos(np.radians(max_turn_deg))
+    reach_i = np.einsum("ik,ijk->ij", out, gap)  # how far ahead of end i end j lies
+    reach_j = -np.einsum("jk,ijk->ij", out, gap)  # and end i of end j
+    off_i = np.abs(out[:, None, 0] * gap[:, :, 1] - out[:, None, 1] * gap[:, :, 0])
+    off_j = np.abs(out[None, :, 0] * gap[:, :, 1] - out[None, :, 1] * gap[:, :, 0])
+    ok = (dist <= max_gap_px) & (owner[:, None] != owner[None, :]) & (-(out @ out.T) >= cos_turn)
+    ok &= (reach_i > 0) & (reach_j > 0) & (off_i <= max_offset_px) & (off_j <= max_offset_px)
+    ii, jj = np.nonzero(np.triu(ok, 1))
+    parent = np.arange(nt)
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    used = np.zeros(pos.shape[0], bool)
+    for m in np.argsort(dist[ii, jj], kind="stable"):  # nearest first, an end joins once
+        i, j = ii[m], jj[m]
+        if used[i] or used[j]:
+            continue
+        used[i] = used[j] = True
+        ra, rb = root(owner[i]), root(owner[j])
+        parent[max(ra, rb)] = min(ra, rb)
+    group = np.array([root(i) for i in range(nt)])
+    return ids[group][inv]
 
 
 def blocked_ends(

@@ -40,7 +40,7 @@ import numpy as np
 
 from crossline.camera import Camera
 from crossline.laser import LaserPlanes
-from crossline.scan.centreline import link_traces, trace_position
+from crossline.scan.centreline import join_traces, link_traces, trace_position
 
 __all__ = ["CrossOrder"]
 
@@ -212,6 +212,22 @@ class CrossOrder:
         by_dir = np.where(to_b - to_a >= margin, 1, np.where(to_a - to_b >= margin, 2, 0))
         if not (total > 0).any():  # no crossing seen in this frame: the directions alone
             code = np.where(line, by_dir, code)
+        # a stripe turning past the switch between column and row profiles (a curve on a
+        # ball) is several traces end to end: they are one laser, the one its piece nearest l
+        # was given (the order holds at the crossing; a piece far from it is told by a line
+        # drawn a long way to l, or by a direction the curve has turned from)
+        group = join_traces(trace, lu, uu, vv)
+        _, gpiece = np.unique(2 * group.astype(np.int64) + (h > 0), return_inverse=True)
+        gpiece = gpiece.reshape(-1)
+        group_of = np.zeros(n_pieces, np.int64)
+        group_of[piece] = gpiece
+        decided = np.flatnonzero(code > 0)
+        nearest = decided[np.lexsort((h_min[decided], group_of[decided]))]
+        first = np.ones(nearest.size, bool)  # each group's piece nearest l, of those decided
+        first[1:] = group_of[nearest][1:] != group_of[nearest][:-1]
+        group_code = np.zeros(int(gpiece.max()) + 1, code.dtype)
+        group_code[group_of[nearest[first]]] = code[nearest[first]]
+        code, piece = group_code, gpiece
         off_l = np.abs(h) > near_px
         out[idx[off_l]] = code[piece[off_l]]
         piece_of[idx[off_l]] = piece[off_l]
