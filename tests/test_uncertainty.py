@@ -409,6 +409,21 @@ def test_a_gauge_seen_whole_in_few_frames_gets_u_from_the_draws_that_define_it(s
     assert np.isnan(res2["interval_95"]).all()
 
 
+def test_a_resampling_without_the_plate_leaves_the_gauge_height_undefined(synthetic) -> None:
+    """Random rig 53's gauge: its plate seen in a few frames only, a frame resampling may draw
+    none of them. The height is then undefined for that draw (NaN, counted by monte_carlo),
+    where the plate's weights summed to zero and the plane fit raised (no U at all)."""
+    raw, interim = synthetic
+    model = _model(np.random.default_rng(5))
+    sp = _scan(raw, interim, "gauge", model)
+    frame = pd.read_parquet(interim / "points" / "gauge.parquet")["frame"].to_numpy()
+    g = mt.measure_gauge_block(sp.points, 20.0, frame=frame)
+    w = np.ones(len(frame))
+    w[g.plate_mask] = 0.0
+    assert np.isnan(uc.gauge_figures(g, sp.points, frame)(sp.points, w)["mean_mm"])
+    assert np.isfinite(uc.gauge_figures(g, sp.points, frame)(sp.points, np.ones(len(frame)))["mean_mm"])
+
+
 @pytest.fixture(scope="module")
 def dense_ball(tmp_path_factory) -> tuple[Path, Path]:
     """A ball scanned with 1000 points per stripe (about 40 000 points)."""

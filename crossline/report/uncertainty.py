@@ -260,10 +260,14 @@ def gauge_figures(g: Any, points: np.ndarray, frame: np.ndarray | None, min_fram
 
     def figures(P: np.ndarray, w: np.ndarray) -> dict[str, float]:
         wp, wt = w[plate], w[top]
+        if not wp.sum() > 0:  # a resampling without a frame that saw the plate: no plane
+            return {"mean_mm": float("nan")}
         n = None
         if within:  # the report's normal: each frame's stripes on both faces (artefacts)
             n = normal_within_frames(P[both], group, w[both], min_ratio=0.0)
         if n is None:
+            if not w[plane].sum() > 0:  # only the plate's trimmed outliers drawn
+                return {"mean_mm": float("nan")}
             n, d = _weighted_plane(P[plane], w[plane], g.plate_normal)
         else:
             n = n if float(n @ g.plate_normal) >= 0 else -n
