@@ -32,7 +32,7 @@ def _calibrate_camera(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bias-correction", type=_bool, default=True,
                    help="correct the perspective bias of circle centres (default true)")
     p.add_argument("--outlier-factor", type=float, default=3.0,
-                   help="drop views whose RMS exceeds this many times the median (default 3)")
+                   help="drop views whose RMS exceeds this many times the median and 0.1 px (default 3)")
     p.add_argument("--min-views", type=int, default=6, help="fewest usable views (default 6)")
     p.add_argument("--views", choices=("camera", "all"), default="all",
                    help="board views to use: calibration/camera only, or all lasers-off board "
