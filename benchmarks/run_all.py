@@ -32,6 +32,8 @@ AREAS: dict[str, tuple[str, str]] = {
                    "python benchmarks/bench_rigs.py --seeds 20-39 --tag _20-39"),
     "rigs_40-51": ("Accuracy on random rigs 40-51, every target",
                    "python benchmarks/bench_rigs.py --seeds 40-51 --tag _40-51"),
+    "rigs_52-59": ("Accuracy on random rigs 52-59, every target",
+                   "python benchmarks/bench_rigs.py --seeds 52-59 --tag _52-59"),
     "calibration": ("Camera and laser planes against truth", "python benchmarks/bench_calibration.py"),
     "laser_planes": ("Laser planes on other boards, with and without the albedo gain",
                      "python benchmarks/bench_laser_planes.py"),
