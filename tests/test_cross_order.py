@@ -200,13 +200,25 @@ def _stripes_by_axis(cam: Camera, planes: LaserPlanes, n_s: np.ndarray, p_s: np.
         if len(uv) < 2:
             continue
         ax = int(np.ptp(uv[:, 1]) > np.ptp(uv[:, 0]))  # steep: along the rows
-        o = np.argsort(uv[:, ax])
-        grid = np.arange(np.ceil(uv[:, ax].min()), np.floor(uv[:, ax].max()) + 1)
-        other = np.interp(grid, uv[o, ax], uv[o, 1 - ax])
-        u, v = (grid, other) if ax == 0 else (other, grid)
-        out.append((u, v, np.full(grid.size, ax, np.uint8), np.full(grid.size, code)))
-    u, v, axis, lab = (np.concatenate(x) for x in zip(*out, strict=True))
-    # the crossing, where the extractor finds one merged run: left out
+        out.append((*_sampled(uv, ax), ax, code))
+    return _without_crossing(out)
+
+
+def _sampled(q: np.ndarray, ax: int) -> tuple[np.ndarray, np.ndarray]:
+    """A curve's points (N, 2) at the integer image columns (``ax`` 0) or rows (1) it spans: u, v."""
+    o = np.argsort(q[:, ax])
+    grid = np.arange(np.ceil(q[:, ax].min()), np.floor(q[:, ax].max()) + 1)
+    other = np.interp(grid, q[o, ax], q[o, 1 - ax])
+    return (grid, other) if ax == 0 else (other, grid)
+
+
+def _without_crossing(pieces: list) -> tuple[np.ndarray, ...]:
+    """u, v, axis, truth of sampled pieces ``(u, v, axis, code)``, less the crossing, where the
+    extractor finds one merged run (within 6 px of the other laser's stripe)."""
+    u = np.concatenate([p[0] for p in pieces])
+    v = np.concatenate([p[1] for p in pieces])
+    axis = np.concatenate([np.full(p[0].size, p[2], np.uint8) for p in pieces])
+    lab = np.concatenate([np.full(p[0].size, p[3]) for p in pieces])
     near = np.zeros(u.size, bool)
     a, b = lab == 1, lab == 2
     if a.any() and b.any():
@@ -268,19 +280,8 @@ def _on_ball(cam: Camera, planes: LaserPlanes, centre: np.ndarray, radius: float
             steep = np.abs(dq[:, 1]) > np.abs(dq[:, 0])
             for seg in np.split(np.arange(run.size), np.flatnonzero(np.diff(steep.astype(int))) + 1):
                 ax = int(steep[seg[0]])
-                s = q[seg]
-                o = np.argsort(s[:, ax])
-                grid = np.arange(np.ceil(s[:, ax].min()), np.floor(s[:, ax].max()) + 1)
-                other = np.interp(grid, s[o, ax], s[o, 1 - ax])
-                u, v = (grid, other) if ax == 0 else (other, grid)
-                out.append((u, v, np.full(grid.size, ax, np.uint8), np.full(grid.size, code)))
-    u, v, axis, lab = (np.concatenate(x) for x in zip(*out, strict=True))
-    near = np.zeros(u.size, bool)  # the crossing, one merged run for the extractor: left out
-    a, b = lab == 1, lab == 2
-    dist = np.hypot(u[a, None] - u[None, b], v[a, None] - v[None, b])
-    near[np.flatnonzero(a)] = dist.min(1) < 6.0
-    near[np.flatnonzero(b)] = dist.min(0) < 6.0
-    return u[~near], v[~near], axis[~near], lab[~near]
+                out.append((*_sampled(q[seg], ax), ax, code))
+    return _without_crossing(out)
 
 
 @pytest.mark.parametrize("seed", [32, 33, 36, 37])
