@@ -143,7 +143,10 @@ class CrossOrder:
         hidden, or out of the window), a piece takes the laser whose stripe on such a surface
         runs nearer its direction, if nearer by ``direction_margin`` of the angle between the
         two or more; where some pieces meet, the others stay undecided (a short piece on a ball
-        can run either way). Centres within ``near_px`` of ``l`` stay undecided. ``link``: the
+        can run either way). Traces that continue one another in the image (a stripe turning
+        past the switch between column and row profiles, :func:`~crossline.scan.centreline.join_traces`)
+        are one piece on each side of ``l``, labelled as their part nearest ``l``; the pieces
+        returned are these. Centres within ``near_px`` of ``l`` stay undecided. ``link``: the
         coordinates the centres are linked into traces by, where not ``(u, v)`` (the trace
         space of :func:`crossline.scan.centreline.trace_space`, which follows a steep stripe
         down the rows).
