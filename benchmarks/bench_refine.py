@@ -53,7 +53,7 @@ import yaml
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from crossline.fuse import camera_centres, estimate_normals, orient_normals, read_ply  # noqa: E402
+from crossline.fuse import arm_prior, camera_centres, estimate_normals, orient_normals, read_ply  # noqa: E402
 from crossline.geometry import transform_from_pose, transform_points  # noqa: E402
 from crossline.io.capture import open_capture  # noqa: E402
 from crossline.report import metrics as mt  # noqa: E402
@@ -281,8 +281,9 @@ def run_capture(name: str, capture: Path, draws: int) -> dict[str, Any]:
         runs[tag]["_report_s"] = float(pd.read_csv(rb, sep="\t")["s"].iloc[-1]) if rb.is_file() else None
     fuse_cfg = cfg["fuse"]
     rad = fuse_cfg.get("arm_precision_rad", "auto")
-    prior = ArmPrior.from_precision(
-        float(fuse_cfg.get("arm_precision_mm", 0.02)), None if rad in (None, "auto") else float(rad),
+    prior, _ = arm_prior(
+        fuse_cfg.get("arm_precision_mm", "auto"), None if rad in (None, "auto") else float(rad),
+        wd / "data" / "interim" / name / "calibration" / "handeye.json",
         smooth_fraction=float(fuse_cfg.get("arm_smooth_fraction", 0.9)),
         corr_time_s=float(fuse_cfg.get("arm_corr_time_s", 0.3)))
     res["prior"] = dataclasses.asdict(prior)

@@ -51,7 +51,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 from bench_refine import CACHE, arm_draws, capture_path, refine_posed, true_points  # noqa: E402
 
 from crossline.camera import Camera  # noqa: E402
-from crossline.fuse import camera_centres  # noqa: E402
+from crossline.fuse import arm_prior, camera_centres  # noqa: E402
 from crossline.geometry import transform_from_pose, transform_points  # noqa: E402
 from crossline.io.capture import open_capture  # noqa: E402
 from crossline.laser import LaserPlanes  # noqa: E402
@@ -247,10 +247,10 @@ def main(argv: list[str] | None = None) -> int:
     times, origins = tp["time_s"].to_numpy()[pos], Tt[pos, :3, 3]
     fcfg = yaml.safe_load((REPO / "config.yaml").read_text())["fuse"]
     rad = fcfg.get("arm_precision_rad", "auto")
-    prior = ArmPrior.from_precision(float(fcfg["arm_precision_mm"]),
-                                    None if rad in (None, "auto") else float(rad),
-                                    smooth_fraction=float(fcfg["arm_smooth_fraction"]),
-                                    corr_time_s=float(fcfg["arm_corr_time_s"]))
+    prior, _ = arm_prior(fcfg["arm_precision_mm"], None if rad in (None, "auto") else float(rad),
+                         interim / "calibration" / "handeye.json",
+                         smooth_fraction=float(fcfg["arm_smooth_fraction"]),
+                         corr_time_s=float(fcfg["arm_corr_time_s"]))
 
     def sphere(P: np.ndarray) -> tuple[float, float]:
         f = mt.measure_sphere(P, 2 * R, ransac_threshold_mm=0.2, trim_sigma=5.0, seed=0).figures()

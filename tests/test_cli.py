@@ -31,6 +31,8 @@ def test_fuse_arm_options_parse():
     a = _parse(*FUSE, "--arm-precision-rad", "auto", "--arm-smooth-fraction", "0", "--arm-corr-time-s", "0.5")
     assert a.arm_precision_rad is None and a.arm_smooth_fraction == 0.0 and a.arm_corr_time_s == 0.5
     assert _parse(*FUSE, "--arm-precision-rad", "1e-4").arm_precision_rad == 1e-4
+    a = _parse(*FUSE, "--arm-precision-mm", "auto", "--handeye", "h.json")
+    assert a.arm_precision_mm is None and str(a.handeye) == "h.json"  # None: auto, as run() passes it
 
 
 @pytest.mark.parametrize("argv, opt, value, expected", [

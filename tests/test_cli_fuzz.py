@@ -158,7 +158,11 @@ def build_env(quick_capture: Path, work: Path) -> Env:
     c = truth["camera"]
     Camera(np.array(c["K"]), np.array(c["dist"]), tuple(c["image_size"])).save(cal / "camera.json")
     LaserPlanes.from_dict(truth["lasers"]).save(cal / "lasers.json")
-    write_json(cal / "handeye.json", {"T_tool_cam": truth["T_tool_cam"], "method": "truth"})
+    # with the arm's true noise as the refinement's estimate of it (fuse's prior, config's auto)
+    arm = {"arm_sigma_mm": truth["arm_noise"]["sigma_axis_mm"],
+           "arm_sigma_rad": truth["arm_noise"]["rot_sigma_axis_rad"]}
+    write_json(cal / "handeye.json", {"T_tool_cam": truth["T_tool_cam"], "method": "truth",
+                                      "methods": {"refined": {"noise_model": arm}}})
     err = io.StringIO()
     with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
         code = main(["extract-stripes", str(base), "plate", "--out", str(cal / "stripes.parquet")])
@@ -194,7 +198,7 @@ def products(env: Env) -> Path:
                   "--lasers", env.cal / "lasers.json", "--handeye", env.cal / "handeye.json",
                   "--out", points],
                  _fuse_argv(points, env.base / "scans" / scan / "frames.csv", processed / f"{scan}.ply",
-                            processed / f"{scan}.fuse.json")]
+                            processed / f"{scan}.fuse.json", env.cal / "handeye.json")]
         for argv in runs:
             with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
                 code = main([str(a) for a in argv])
@@ -204,7 +208,8 @@ def products(env: Env) -> Path:
     return env.work
 
 
-def _fuse_argv(points: Path, frames: Path, cloud: Path, stats: Path, arm: Path | None = None) -> list:
+def _fuse_argv(points: Path, frames: Path, cloud: Path, stats: Path, handeye: Path,
+               arm: Path | None = None) -> list:
     """fuse's command line as workflow/rules/fuse.smk gives it, with config.yaml's values (the
     arm's draws written to ``arm`` when given)."""
     c = yaml.safe_load((REPO / "config.yaml").read_text())["fuse"]
@@ -214,7 +219,7 @@ def _fuse_argv(points: Path, frames: Path, cloud: Path, stats: Path, arm: Path |
                               "crossing_max_width_ratio")}
     flag = [(f"--{k.replace('_', '-')}", v) for k, v in opts.items()]
     flag += [("--mesh-out", cloud.with_suffix(".stl")), ("--refine-poses", str(c["refine_poses"]).lower()),
-             ("--frames", frames)]
+             ("--frames", frames), ("--handeye", handeye)]
     flag += [(f"--{k.replace('_', '-')}", v) for k, v in more.items()]
     if arm is not None:
         flag += [("--arm-draws", c["arm_draws"]), ("--arm-draws-out", arm)]
@@ -251,7 +256,7 @@ def _argv(command: str, root: Path, out: Path, cal: Path) -> tuple[list, Path]:
                          "--out", out / "points.parquet"], out / "points.parquet"),
         "fuse": (_fuse_argv(cal.parent / "interim" / "points" / f"{FUSED}.parquet",
                             root / "scans" / FUSED / "frames.csv", out / f"{FUSED}.ply",
-                            out / f"{FUSED}.fuse.json"), out / f"{FUSED}.ply"),
+                            out / f"{FUSED}.fuse.json", cal / "handeye.json"), out / f"{FUSED}.ply"),
         "report": (["report", root, "--interim", cal.parent / "interim",
                     "--processed", cal.parent / "processed",
                     "--config-json", _report_config(), "--pdf", out / "accuracy.pdf",

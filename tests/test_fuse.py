@@ -198,16 +198,15 @@ def test_points_in_camera_and_base_agree(plate_scan):
 # ----------------------------------------------------------------------------- pose refinement
 
 
-@pytest.fixture(scope="module")
-def posed_plate(tmp_path_factory):
-    """A plate scan whose reported arm poses carry known errors, as the stage's files."""
+def _posed_plate(root, scale: float = 1.0):
+    """A plate scan whose reported arm poses carry known errors (``scale`` x the paper arm's),
+    as the stage's files in ``root``."""
     from crossline.geometry import matrix_to_quat
     from tests.test_refine import PRIOR, Scan, X, arm_errors, reported
 
     s = Scan("plane", frames=60, rays=1200)
-    e = arm_errors(len(s.T), PRIOR, seed=8)
+    e = arm_errors(len(s.T), PRIOR, seed=8, scale=scale)
     p, _ = reported(s.df, s.T, e)
-    root = tmp_path_factory.mktemp("posed")
     df = s.df.copy()
     df[["x", "y", "z"]] = p
     write_parquet(root / "plate.parquet", df)
@@ -225,6 +224,19 @@ def posed_plate(tmp_path_factory):
     return root
 
 
+@pytest.fixture(scope="module")
+def posed_plate(tmp_path_factory):
+    """A plate scan whose reported arm poses carry the paper arm's errors."""
+    return _posed_plate(tmp_path_factory.mktemp("posed"))
+
+
+def _flatness(c) -> float:
+    """RMS of a cloud's points about their own plane z = a + b x + c y (mm)."""
+    A = np.column_stack([np.ones(len(c.points)), c.points[:, :2]])
+    z = c.points[:, 2]
+    return float(np.sqrt(np.mean((z - A @ np.linalg.lstsq(A, z, rcond=None)[0]) ** 2)))
+
+
 def test_run_fuse_refines_the_poses(posed_plate, tmp_path):
     pq, frames = posed_plate / "plate.parquet", posed_plate / "frames.csv"
     plain = run_fuse(pq, tmp_path / "plain.ply", stats=tmp_path / "plain.json")
@@ -233,11 +245,7 @@ def test_run_fuse_refines_the_poses(posed_plate, tmp_path):
     assert _sha(tmp_path / "a.ply") == _sha(tmp_path / "b.ply")
     assert (tmp_path / "a.json").read_text() == (tmp_path / "b.json").read_text()
     # the plate z = 0 is flat again: residuals to its own plane from ~4 µm to under 1 µm
-    def flat(c):
-        A = np.column_stack([np.ones(len(c.points)), c.points[:, :2]])
-        z = c.points[:, 2]
-        return np.sqrt(np.mean((z - A @ np.linalg.lstsq(A, z, rcond=None)[0]) ** 2))
-    assert flat(plain) > 0.003 and flat(a) < 0.25 * flat(plain)
+    assert _flatness(plain) > 0.003 and _flatness(a) < 0.25 * _flatness(plain)
     # the PLY is the same format, every point keeps its laser and frame
     r = read_ply(tmp_path / "a.ply")
     assert len(r["points"]) == len(a.points) and set(r) == set(read_ply(tmp_path / "plain.ply"))
@@ -289,6 +297,58 @@ def test_run_fuse_draws_the_arm_error_it_leaves(posed_plate, tmp_path):
     assert read_arm_draws(tmp_path / "d.npz").draws.shape[0] == 0
     with pytest.raises(StageError, match="arm_draws=-1"):
         run_fuse(pq, tmp_path / "x.ply", arm_draws=-1, arm_draws_out=tmp_path / "x.npz")
+
+
+def _handeye_file(path, sigma_mm: float, sigma_rad: float, views: int = 8) -> None:
+    """A handeye.json with the refinement's estimate of the arm's noise, as calibrate-handeye
+    writes it."""
+    from tests.test_refine import X
+
+    noise = {"arm_sigma_mm": sigma_mm, "arm_sigma_rad": sigma_rad, "image_sigma_px": 0.01}
+    path.write_text(json.dumps({"T_tool_cam": X.tolist(), "method": "refined",
+                                "board_poses": [np.eye(4).tolist()] * views,
+                                "methods": {"refined": {"noise_model": noise}}}))
+
+
+def test_run_fuse_takes_the_arm_prior_from_the_hand_eye_views(tmp_path):
+    """An arm 10x noisier than the stated 0.02 mm: with arm_precision_mm auto the prior is the
+    noise the hand-eye views measured, and the refinement corrects what the tight prior held."""
+    from tests.test_refine import PRIOR
+
+    root = _posed_plate(tmp_path / "noisy", scale=10.0)
+    pq, frames = root / "plate.parquet", root / "frames.csv"
+    he = tmp_path / "handeye.json"
+    _handeye_file(he, 10 * PRIOR.sigma_mm, 10 * PRIOR.sigma_rad)
+    stated = run_fuse(pq, tmp_path / "s.ply", refine_poses=True, frames=frames, arm_precision_mm=0.02,
+                      handeye=he)
+    auto = run_fuse(pq, tmp_path / "a.ply", refine_poses=True, frames=frames, arm_precision_mm="auto",
+                    handeye=he)
+    plain = run_fuse(pq, tmp_path / "p.ply")
+    assert auto.stats["arm_prior"]["source"] == "hand-eye calibration (8 views)"
+    assert auto.stats["arm_prior"]["sigma_mm"] == pytest.approx(10 * PRIOR.sigma_mm)
+    assert auto.stats["arm_prior"]["precision_mm"] == pytest.approx(0.2)
+    assert stated.stats["arm_prior"]["source"] == "stated (arm_precision_mm)"
+    assert stated.stats["arm_prior"]["handeye_ratio"] == pytest.approx(10.0)  # the report's warning
+    assert _flatness(auto) < 0.5 * _flatness(stated) < 0.5 * _flatness(plain)
+    # a rotation estimate below the position's over one arm link is raised to it
+    _handeye_file(he, 10 * PRIOR.sigma_mm, 0.0001 * PRIOR.sigma_rad)
+    low = run_fuse(pq, tmp_path / "l.ply", refine_poses=True, frames=frames, arm_precision_mm="auto",
+                   handeye=he)
+    assert low.stats["arm_prior"]["sigma_rad"] == pytest.approx(10 * PRIOR.sigma_mm / 300.0)
+
+
+def test_run_fuse_auto_prior_needs_the_hand_eye_estimate(posed_plate, tmp_path):
+    pq, frames = posed_plate / "plate.parquet", posed_plate / "frames.csv"
+    with pytest.raises(StageError, match=r"give its handeye\.json \(--handeye\)"):
+        run_fuse(pq, tmp_path / "x.ply", refine_poses=True, frames=frames, arm_precision_mm="auto")
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps({"T_tool_cam": np.eye(4).tolist(), "method": "park"}))
+    with pytest.raises(StageError, match=r"old\.json: holds no estimate of the arm's noise"):
+        run_fuse(pq, tmp_path / "x.ply", refine_poses=True, frames=frames, arm_precision_mm="auto",
+                 handeye=old)
+    with pytest.raises(StageError, match=r"missing\.json: cannot read the hand-eye calibration"):
+        run_fuse(pq, tmp_path / "x.ply", refine_poses=True, frames=frames, arm_precision_mm="auto",
+                 handeye=tmp_path / "missing.json")
 
 
 def test_run_fuse_keeps_long_cut_centres_out_of_the_crossings(posed_plate, tmp_path):

@@ -113,7 +113,7 @@ def made(quick_capture: Path, tmp_path_factory) -> Made:
     assert main(argv) == 0
     assert main([str(a) for a in _fuse_argv(
         points / f"{FUSED}.parquet", scan / "frames.csv", processed / f"{FUSED}.ply",
-        processed / f"{FUSED}.fuse.json", arm=processed / f"{FUSED}.arm.npz")]) == 0
+        processed / f"{FUSED}.fuse.json", cal / "handeye.json", arm=processed / f"{FUSED}.arm.npz")]) == 0
     (processed / f"{FUSED}.stl").unlink(missing_ok=True)
     # another scan's points and arm draws (gauge: its 24 frames numbered as plate's), beside them
     other = products / "other"
@@ -126,7 +126,7 @@ def made(quick_capture: Path, tmp_path_factory) -> Made:
     assert main(argv) == 0
     assert main([str(a) for a in _fuse_argv(
         other / f"{OTHER}.parquet", env.base / "scans" / OTHER / "frames.csv", other / f"{OTHER}.ply",
-        other / f"{OTHER}.fuse.json", arm=other / f"{OTHER}.arm.npz")]) == 0
+        other / f"{OTHER}.fuse.json", cal / "handeye.json", arm=other / f"{OTHER}.arm.npz")]) == 0
     return Made(env.work, env.base, products)
 
 

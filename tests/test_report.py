@@ -285,6 +285,25 @@ def test_capture_without_truth_date_or_calibrations(synthetic, tmp_path):
     assert any("No handeye.json" in t for t in texts)
 
 
+def test_scan_page_warns_of_an_arm_noisier_than_stated(report_data):
+    """The fuse stage's prior beside the hand-eye views' estimate of the arm's noise: the scan's
+    page names both, and warns where the views measured it over 3x the stated precision."""
+    import copy
+
+    def gauge_page(ratio: float) -> str:
+        m = copy.deepcopy(report_data.metrics)
+        m["scans"]["gauge"]["counts"].setdefault("fused", {})["arm_prior"] = {
+            "source": "stated (arm_precision_mm)", "precision_mm": 0.02, "sigma_mm": 0.00577,
+            "handeye_sigma_mm": 0.00577 * ratio, "handeye_ratio": ratio}
+        texts = [" ".join(page_texts(f)) for f in build_pages(m, report_data.plots)]
+        return next(t for t in texts if "Scan 'gauge'" in t)
+
+    noisy, fine = gauge_page(9.2), gauge_page(1.5)
+    assert "arm prior 0.020 mm" in noisy and "measured 9.2× that" in noisy
+    assert "The hand-eye views put the arm's noise at 9.2× the stated precision" in noisy
+    assert "measured 1.5× that" in fine and "put the arm's noise" not in fine
+
+
 def test_missing_cloud_falls_back_to_points(synthetic, tmp_path):
     raw, interim, processed = synthetic
     proc = tmp_path / "processed"

@@ -19,6 +19,8 @@ def _type(spec: dict[str, Any]) -> str:
     """A short human type for a schema node: enum values, type and range."""
     if "enum" in spec:
         return " \\| ".join(f"`{v}`" for v in spec["enum"])
+    if "const" in spec:
+        return f"`{spec['const']}`"
     if "oneOf" in spec or "anyOf" in spec:
         return " or ".join(_type(s) for s in spec.get("oneOf", spec.get("anyOf")))
     t = spec.get("type", "")

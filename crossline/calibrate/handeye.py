@@ -155,6 +155,17 @@ class HandEye:
         extra = {k: v for k, v in data.items() if k not in ("T_tool_cam", "method")}
         return cls(T, method, extra)
 
+    def arm_noise(self) -> dict[str, float] | None:
+        """The arm's pose noise per axis that the refinement estimated from the views' residuals
+        (``sigma_mm``, ``sigma_rad``, ``views``); None where the file holds no such estimate."""
+        nm = ((self.extra.get("methods") or {}).get("refined") or {}).get("noise_model") or {}
+        s_mm, s_rad = nm.get("arm_sigma_mm"), nm.get("arm_sigma_rad")
+        ok = all(isinstance(v, (int, float)) and np.isfinite(v) and v > 0 for v in (s_mm, s_rad))
+        if not ok:
+            return None
+        return {"sigma_mm": float(s_mm), "sigma_rad": float(s_rad),
+                "views": len(self.extra.get("board_poses") or [])}
+
     def save(self, path: str | Path) -> None:
         """Write ``handeye.json`` atomically."""
         write_json(path, self.to_dict())

@@ -20,7 +20,8 @@ from crossline.cli.args import _auto_or_positive, _bool, _positive, _threads, _u
     "fuse the points of a scan into an Open3D cloud (PLY), optionally a mesh (STL)",
     """
     Optional refinement of every frame's arm pose from the scan itself (where line A of one
-    frame crosses line B of another, the two must meet; the arm's precision is the prior),
+    frame crosses line B of another, the two must meet; the arm's precision, stated or as the
+    hand-eye views measured it, is the prior),
     statistical outlier removal, optional voxel down-sampling, normals; writes the cloud
     as PLY in the base frame (mm) and, if asked, a Poisson or ball-pivoting mesh as STL.
     """,
@@ -41,10 +42,15 @@ def _fuse(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frames", type=Path,
                    help="the scan's frames.csv: frame times and flange positions for the refinement "
                         "(without it the frames' pose errors are taken as independent)")
-    p.add_argument("--arm-precision-mm", type=float, default=0.02,
-                   help="arm's stated precision, read as 2 sigma of the 3-D position error (mm)")
+    p.add_argument("--arm-precision-mm", type=_auto_or_positive, default=0.02,
+                   help="arm's stated precision, read as 2 sigma of the 3-D position error (mm); "
+                        "auto: the arm's noise that the hand-eye calibration (--handeye) estimated "
+                        "from its views")
     p.add_argument("--arm-precision-rad", type=_auto_or_positive, default=None,
-                   help="the same for the orientation (rad); auto = the mm figure over 300 mm")
+                   help="the same for the orientation (rad); auto = the mm figure over 300 mm "
+                        "(with --arm-precision-mm auto: the hand-eye's estimate, at least that)")
+    p.add_argument("--handeye", type=Path,
+                   help="handeye.json, whose estimate of the arm's noise --arm-precision-mm auto takes")
     p.add_argument("--arm-smooth-fraction", type=_unit_interval, default=0.9,
                    help="share of the arm's error that drifts smoothly (0..1): the drift's sigma is "
                         "this share of the whole, the white part's sqrt(1 - share^2)")
@@ -72,7 +78,8 @@ def _fuse(p: argparse.ArgumentParser) -> None:
             a.points, a.out, stats=a.stats, neighbours=a.neighbours, std_ratio=a.std_ratio,
             voxel_mm=a.voxel_mm, normal_radius_mm=a.normal_radius_mm, mesh=a.mesh,
             mesh_out=a.mesh_out, threads=a.threads, refine_poses=a.refine_poses,
-            frames=a.frames, arm_precision_mm=a.arm_precision_mm,
+            frames=a.frames, handeye=a.handeye,
+            arm_precision_mm="auto" if a.arm_precision_mm is None else a.arm_precision_mm,
             arm_precision_rad=a.arm_precision_rad, arm_smooth_fraction=a.arm_smooth_fraction,
             arm_corr_time_s=a.arm_corr_time_s, crossing_half_mm=a.crossing_half_mm,
             crossing_min_angle_deg=a.crossing_min_angle_deg,

@@ -207,6 +207,8 @@ def _measure_scan(sd: ScanData, tol: dict, met: dict, truth: dict | None, root: 
                                               "n_output") if k in fs}
         if isinstance(fs.get("parameters"), dict):
             counts["fused"]["parameters"] = fs["parameters"]
+        if isinstance(fs.get("arm_prior"), dict):
+            counts["fused"]["arm_prior"] = fs["arm_prior"]
         ref = fs.get("refine")
         if isinstance(ref, dict) and ref.get("skipped"):
             counts["fused"]["pose_refinement"] = {"skipped": ref["skipped"]}

@@ -57,6 +57,24 @@ def _ab_rows(ab: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
              ["centre distance", "", "", fmt(D["centre_distance_mm"], "mm")]])
 
 
+def _arm_prior_lines(prior: dict[str, Any] | None, lines: list[str]) -> str | None:
+    """The refinement's arm prior as lines of the scan's counts; a warning where the hand-eye
+    views measured the arm ``ARM_PRIOR_WARN`` times noisier than the stated figure."""
+    from crossline.fuse.cloud import ARM_PRIOR_ADVICE, ARM_PRIOR_WARN
+
+    if not isinstance(prior, dict) or prior.get("precision_mm") is None:
+        return None
+    lines.append(f"  arm prior {fmt(prior['precision_mm'], '', 3)} mm (2σ 3-D): {prior.get('source', '')}")
+    ratio = prior.get("handeye_ratio")
+    if ratio is None:
+        return None
+    lines.append(f"  the hand-eye views measured {fmt(ratio, '', 1)}× that")
+    if ratio <= ARM_PRIOR_WARN:
+        return None
+    return (f"The hand-eye views put the arm's noise at {fmt(ratio, '', 1)}× the stated precision: "
+            f"{ARM_PRIOR_ADVICE}.")
+
+
 def page_scan(m: dict[str, Any], name: str, plots: dict[str, Any]) -> Figure:
     """One scan: counts and the gain of the cross, top view by height, the artefact's histogram."""
     s = m["scans"][name]
@@ -106,6 +124,7 @@ def page_scan(m: dict[str, Any], name: str, plots: dict[str, Any]) -> Figure:
         lines.append(f"gain over a single line {fmt(c['gain_over_single_line'], '', 3)}× "
                      "(the paper: 1.33× ideally)")
     fz = c.get("fused")
+    warn = None
     if fz:
         lines.append(f"fused cloud {fmt(fz.get('n_output'))} points "
                      f"({fmt(fz.get('n_outliers'))} outliers removed)")
@@ -118,10 +137,13 @@ def page_scan(m: dict[str, Any], name: str, plots: dict[str, Any]) -> Figure:
             lines.append(f"  crossing gaps {_um(pr.get('gap_rms_before_mm'))} -> "
                          f"{_um(pr.get('gap_rms_after_mm'))} µm RMS, corrections "
                          f"{_um(pr.get('correction_rms_mm'))} µm")
+        warn = _arm_prior_lines(fz.get("arm_prior"), lines)
     if s.get("cloud_source"):
         lines.append(f"measured on {s['cloud_source']}")
     for ln in lines:
         p.text(ln, size=8.2)
+    if warn:
+        p.text(warn, size=8, color=COLOURS["FAIL"])
     if s.get("error"):
         p.text(f"measurement failed: {s['error']}", size=8, color=COLOURS["FAIL"])
     # points per frame by laser state, beside the counts

@@ -11,7 +11,8 @@ What is drawn, and what is not:
 * **arm**: every frame's arm pose error left in the cloud, drawn by the fuse stage
   (``<scan>.arm.npz``, :mod:`crossline.io.arm_draws`): from the pose refinement's posterior
   (perturb-and-MAP on its normal equations) where the scan was refined, else from the arm's
-  prior (its stated precision, a drift correlated in time plus a white part); each point moves
+  prior (its noise as the hand-eye views estimated it, or its stated precision; a drift
+  correlated in time plus a white part); each point moves
   with its frame's drawn error. This is the error the frames of one pass share, which no
   resampling of frames sees;
 * **repeatability**: the scan's frames drawn again with replacement (a bootstrap over frames):
@@ -29,7 +30,7 @@ points found again with that camera), since the planes were fitted through the c
 planes' own draw adds their fit's noise, and ``X`` is drawn on its own (its share of the
 camera's error is neglected). Not covered: the camera's model error where distortion terms
 were fixed, the arm's systematic (volumetric) error beyond what hand-eye absorbed, an arm
-whose true precision is worse than its stated one (the prior, ``fuse.arm_precision_mm``), the
+whose true precision is worse than the prior (``fuse.arm_precision_mm``), the
 nominal artefact's own calibration, and temperature.
 """
 

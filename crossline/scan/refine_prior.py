@@ -50,6 +50,21 @@ class ArmPrior:
         r = s / LEVER_MM if precision_rad is None else float(precision_rad) / (2.0 * np.sqrt(3.0))
         return cls(s, r, float(smooth_fraction), float(corr_time_s))
 
+    @classmethod
+    def from_estimate(
+        cls, sigma_mm: float, sigma_rad: float, *, smooth_fraction: float = 0.9,
+        corr_time_s: float = 0.3,
+    ) -> ArmPrior:
+        """Prior from per-axis sigmas measured on the arm (the hand-eye views' noise estimate).
+
+        The rotation sigma is kept at least the position sigma over ``LEVER_MM``: a handful of
+        views determines it poorly (8 views of one random rig gave 0), and a prior tighter than
+        the arm keeps the refinement from correcting what the arm did, where a looser one
+        costs only some noise.
+        """
+        s = float(sigma_mm)
+        return cls(s, max(float(sigma_rad), s / LEVER_MM), float(smooth_fraction), float(corr_time_s))
+
     def sigmas(self) -> np.ndarray:
         """Per-dof 1-sigma (6,): rotation x, y, z (rad), then translation x, y, z (mm)."""
         return np.array([self.sigma_rad] * 3 + [self.sigma_mm] * 3)

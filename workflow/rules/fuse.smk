@@ -6,7 +6,9 @@ rule fuse_points:
         points="data/interim/{capture}/points/{scan}.parquet",
         # frame times and reported flange positions: the pose refinement's prior and centres
         frames="data/raw/{capture}/scans/{scan}/frames.csv",
-        code=code("crossline.fuse", "crossline.scan.refine"),
+        # its estimate of the arm's noise: the prior with arm_precision_mm auto
+        handeye="data/interim/{capture}/calibration/handeye.json",
+        code=code("crossline.fuse", "crossline.scan.refine", "crossline.calibrate.handeye"),
     output:
         cloud="data/processed/{capture}/{scan}.ply",
         stats="data/processed/{capture}/{scan}.fuse.json",
@@ -40,7 +42,7 @@ rule fuse_points:
         "--neighbours {params.neighbours} --std-ratio {params.std_ratio} "
         "--voxel-mm {params.voxel_mm} --normal-radius-mm {params.normal_radius_mm} "
         "--mesh {params.mesh} --mesh-out data/processed/{wildcards.capture}/{wildcards.scan}.stl "
-        "--refine-poses {params.refine_poses} --frames {input.frames} "
+        "--refine-poses {params.refine_poses} --frames {input.frames} --handeye {input.handeye} "
         "--arm-precision-mm {params.arm_precision_mm} --arm-precision-rad {params.arm_precision_rad} "
         "--arm-smooth-fraction {params.arm_smooth_fraction} --arm-corr-time-s {params.arm_corr_time_s} "
         "--crossing-half-mm {params.crossing_half_mm} "
