@@ -34,6 +34,8 @@ AREAS: dict[str, tuple[str, str]] = {
                    "python benchmarks/bench_rigs.py --seeds 40-51 --tag _40-51"),
     "rigs_52-59": ("Accuracy on random rigs 52-59, every target",
                    "python benchmarks/bench_rigs.py --seeds 52-59 --tag _52-59"),
+    "arm_prior": ("The pose refinement's arm prior: stated or from the hand-eye views (random rigs 0-19)",
+                  "python benchmarks/bench_arm_prior.py"),
     "calibration": ("Camera and laser planes against truth", "python benchmarks/bench_calibration.py"),
     "laser_planes": ("Laser planes on other boards, with and without the albedo gain",
                      "python benchmarks/bench_laser_planes.py"),
