@@ -554,3 +554,24 @@ def test_local_spacing_of_a_one_point_stripe_at_the_end_of_the_order():
     po = _Ordered(p, np.arange(11))
     out = _local_spacing(po, np.array([5, 10]), np.array([0, 10]), np.array([10, 11]))
     assert out[0] == pytest.approx(0.1) and np.isnan(out[1])
+
+
+def test_noise_scale_counts_the_unknowns_the_fit_spends():
+    """A few frames, few crossings a frame and a prior 10x looser than the arm: the fit spends
+    most of the crossings on the poses, and the residuals left are smaller than the gaps' noise.
+    The noise scale takes that out (the hat matrix's trace); taken from the residuals as they
+    are it shrank, the data outweighed the prior and the refinement fitted noise as pose."""
+    from crossline.robust import robust_sigma
+    from crossline.scan.refine_solve import solve_errors
+
+    s = Scan("sphere", noise=0.002, frames=24, rays=400)
+    frames, views = camera_centres(s.frame, s.df[["x_cam", "y_cam", "z_cam"]].to_numpy(), s.p_true)
+    cr = R.find_crossings(np.searchsorted(frames, s.frame), s.laser, s.p_true, views)
+    loose = R.ArmPrior.from_precision(0.2)
+    origins = (s.T @ invert_transform(X))[:, :3, 3]
+    _, _, info = solve_errors(cr, origins, loose, s.times)
+    # exact poses: the gaps are the stripes' noise alone, and the fit should say so
+    s0 = np.maximum(cr.sigma, np.median(cr.sigma) * 0.5)
+    noise = robust_sigma(cr.gap / s0)
+    assert info["effective_parameters"] > 0.3 * info["used"]
+    assert 0.75 < info["noise_scale"] / noise < 1.3
