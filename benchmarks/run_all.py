@@ -34,6 +34,8 @@ AREAS: dict[str, tuple[str, str]] = {
                    "python benchmarks/bench_rigs.py --seeds 40-51 --tag _40-51"),
     "rigs_52-59": ("Accuracy on random rigs 52-59, every target",
                    "python benchmarks/bench_rigs.py --seeds 52-59 --tag _52-59"),
+    "rigs_random_0-3": ("Accuracy on random rigs of 1-12 MP (--preset random) 0-3, every target",
+                        "python benchmarks/bench_rigs.py --preset random --seeds 0-3 --tag _random_0-3"),
     "arm_prior": ("The pose refinement's arm prior: stated or from the hand-eye views (random rigs 0-19)",
                   "python benchmarks/bench_arm_prior.py"),
     "calibration": ("Camera and laser planes against truth", "python benchmarks/bench_calibration.py"),
