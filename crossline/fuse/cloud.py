@@ -372,7 +372,7 @@ def run_fuse(
     precision as prior: ``arm_precision_mm`` (and ``arm_precision_rad``, default the mm
     figure over 300 mm) read as 2 sigma of the 3-D error, or ``arm_precision_mm="auto"``: the
     arm's noise that the hand-eye calibration ``handeye`` (its handeye.json) estimated from its
-    views (:func:`_prior_sigmas`); split into a drift correlated in
+    views (:func:`arm_prior`); split into a drift correlated in
     time over ``arm_corr_time_s`` (sigma ``arm_smooth_fraction`` of the whole) and a white
     part (the rest of the variance); ``frames`` (the scan's
     frames.csv) gives the frame times and the flange positions; ``crossing_half_mm`` is the
