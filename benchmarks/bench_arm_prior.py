@@ -30,6 +30,8 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from bench_rigs import CACHE, REPO, RESULTS, figures, parse_seeds  # noqa: E402
 
+from crossline.fuse import arm_prior  # noqa: E402
+
 OUT = HERE / ".cache" / "arm_prior"
 FIGURES = ("gauge_bias_um", "gauge_sigma_um", "plate_within_pct", "sphere_size_um", "sphere_form_um",
            "freeform_rms_um")
@@ -111,8 +113,9 @@ def main(argv: list[str] | None = None) -> int:
         for tag, d in (("stated", CACHE / "work" / "data" / "processed" / n),
                        ("auto", dirs[n] / "processed")):
             st = json.loads(next(iter(sorted(d.glob("*.fuse.json")))).read_text())
-            prior[tag] = (st.get("arm_prior") or {}).get("sigma_mm", cfg["fuse"]["arm_precision_mm"]
-                                                           / (2 * 3**0.5) if tag == "stated" else None)
+            known = (st.get("arm_prior") or {}).get("sigma_mm")  # absent in fuse runs before 123680e
+            stated = arm_prior(cfg["fuse"]["arm_precision_mm"])[0].sigma_mm
+            prior[tag] = known if known is not None else stated
         co, cn = coverage(old), coverage(new)
         rows[n] = {"arm_sigma_mm": truth["sigma_axis_mm"], "prior_sigma_mm": prior,
                    "stated": fo, "auto": fn, "E_n": {"stated": co, "auto": cn}}
