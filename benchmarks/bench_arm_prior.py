@@ -114,8 +114,9 @@ def main(argv: list[str] | None = None) -> int:
                        ("auto", dirs[n] / "processed")):
             st = json.loads(next(iter(sorted(d.glob("*.fuse.json")))).read_text())
             known = (st.get("arm_prior") or {}).get("sigma_mm")  # absent in fuse runs before 123680e
-            stated = arm_prior(cfg["fuse"]["arm_precision_mm"])[0].sigma_mm
-            prior[tag] = known if known is not None else stated
+            if known is None:
+                known = arm_prior(cfg["fuse"]["arm_precision_mm"])[0].sigma_mm
+            prior[tag] = known
         co, cn = coverage(old), coverage(new)
         rows[n] = {"arm_sigma_mm": truth["sigma_axis_mm"], "prior_sigma_mm": prior,
                    "stated": fo, "auto": fn, "E_n": {"stated": co, "auto": cn}}
